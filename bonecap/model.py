@@ -252,8 +252,17 @@ class Bone:
         Pose of the bone frame in the skeleton's world frame at the reference pose.
     joint_centres : dict of str -> ndarray (3,)
         Joint centres in the bone's own frame (mm), e.g. ``{"hip": ..., "knee": ...}``.
+    joint_axes : dict of str -> ndarray (3,)
+        Unit joint axes in the bone's own frame (e.g. the knee flexion axis,
+        the radio-ulnar axis), keyed like ``joint_centres``.
     landmarks : dict of str -> ndarray (3,)
         Named anatomical landmarks in the bone's own frame (mm).
+    inner_mesh : Mesh or None
+        Endosteal surface (the marrow boundary) in the bone's own frame: the
+        space between ``mesh`` and ``inner_mesh`` is cortex. ``None`` for bones
+        modelled as solid.
+    metadata : dict
+        Free-form: ISB frame description, cortical thickness, OpenSim body name.
     """
 
     name: str
@@ -261,12 +270,22 @@ class Bone:
     mesh: Mesh | None = None
     bone_to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     joint_centres: dict[str, np.ndarray] = field(default_factory=dict)
+    joint_axes: dict[str, np.ndarray] = field(default_factory=dict)
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
+    inner_mesh: Mesh | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         self.bone_to_world = _check_transform(f"Bone {self.name!r} bone_to_world", self.bone_to_world)
         self.joint_centres = {k: np.asarray(v, dtype=float).reshape(3) for k, v in self.joint_centres.items()}
         self.landmarks = {k: np.asarray(v, dtype=float).reshape(3) for k, v in self.landmarks.items()}
+        axes = {k: np.asarray(v, dtype=float).reshape(3) for k, v in self.joint_axes.items()}
+        self.joint_axes = {k: v / np.linalg.norm(v) for k, v in axes.items()}
+
+    def landmark_in_world(self, name: str) -> np.ndarray:
+        """A landmark (or joint centre) of this bone in the skeleton's world frame."""
+        p = self.landmarks[name] if name in self.landmarks else self.joint_centres[name]
+        return self.bone_to_world[:3, :3] @ p + self.bone_to_world[:3, 3]
 
 
 @dataclass
