@@ -1,0 +1,74 @@
+"""The ``bonecap`` command line: argparse wiring only.
+
+Each sub-command parses its arguments and calls one library function; the
+logic lives in the stage modules so everything is usable from Python.
+
+Exit codes: 0 success, 1 bad input (a :class:`~bonecap.errors.BonecapError`,
+reported on one line as ``bonecap: error: PATH: what is wrong``), 2 bad usage
+(argparse's own convention).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Callable, Sequence
+
+from bonecap import __version__
+from bonecap.errors import BonecapError
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    from bonecap.inspect import format_summary, inspect_path
+
+    summaries = [inspect_path(p, subject=args.subject) for p in args.paths]
+    if args.json:
+        out = summaries[0] if len(summaries) == 1 else summaries
+        print(json.dumps(out, indent=2, default=str))
+    else:
+        print("\n\n".join(format_summary(s) for s in summaries))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bonecap",
+        description="From a person's MRI to their own skeleton, driven by optical motion capture.",
+    )
+    parser.add_argument("--version", action="version", version=f"bonecap {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser(
+        "inspect",
+        help="summarise a C3D trial, a DICOM folder, a NIfTI/NRRD volume, a glTF or a mesh",
+        description="Summarise input files: C3D (frames, rate, units as stored, markers, gaps, "
+        "analogs), DICOM folders (each series: shape, spacing, orientation, echo), NIfTI/NRRD "
+        "volumes, glTF (nodes, animation length) and meshes.",
+    )
+    p.add_argument("paths", nargs="+", metavar="PATH", help="file or DICOM folder")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument("--subject", metavar="NAME", help="C3D: the subject prefix to keep")
+    p.set_defaults(handler=_cmd_inspect)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``bonecap`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handler: Handler = args.handler
+    try:
+        return handler(args)
+    except BonecapError as exc:
+        print(f"bonecap: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("bonecap: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
