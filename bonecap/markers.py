@@ -1,0 +1,277 @@
+"""Marker sets: anatomical marker definitions, label matching, and placement on a skeleton.
+
+A marker set (``marker_sets/*.yaml``) defines each marker anatomically -- the
+bone that carries it, a landmark of that bone, and the offset from the bone
+surface to the marker centre along the skin normal -- plus the bones it
+tracks and the other labels labs give it. Because it names landmarks, not
+coordinates, the same set places markers on the generic template, on a
+personal skeleton warped from it, or on an imported OpenSim model (whose own
+MarkerSet becomes a marker set with coordinates already bound to bodies).
+
+A set may ``extend`` another (the paper's set extends Plug-in Gait) and may
+carry a ``paper_solver`` table: for each bone, where the paper's rule-based
+solver takes the proximal and distal joint centres and the twist marker pair.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from bonecap.errors import BonecapError, DataError, FormatError, InputError
+from bonecap.model import Skeleton
+
+__all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
+           "check_marker_set", "place_markers", "match_labels"]
+
+#: Folder of the marker sets shipped with bonecap (beside the package in the source tree).
+MARKER_SET_DIR = Path(__file__).resolve().parents[1] / "marker_sets"
+
+
+@dataclass
+class MarkerDef:
+    """One marker, defined on the anatomy.
+
+    Attributes
+    ----------
+    name : str
+        The label the set uses (``"RASI"``).
+    bone : str
+        Bone that carries the landmark (or, for an OpenSim marker, its body).
+    landmark : str or None
+        Landmark name on ``bone``; ``None`` when ``location`` is given instead.
+    offset_mm : float
+        Distance from the bone surface to the marker centre along the outward
+        surface normal at the landmark (soft tissue + marker radius).
+    tracks : list of str
+        Bones whose motion the marker follows.
+    aliases : list of str
+        Other labels for the same marker, matched case-insensitively.
+    location : ndarray (3,) or None
+        Marker position in the ``bone`` frame in mm, when the set gives it
+        directly (OpenSim MarkerSets) rather than by landmark.
+    virtual : bool
+        A computed point (a joint centre), never expected in a trial.
+    """
+
+    name: str
+    bone: str
+    landmark: str | None = None
+    offset_mm: float = 0.0
+    tracks: list[str] = field(default_factory=list)
+    aliases: list[str] = field(default_factory=list)
+    description: str = ""
+    location: np.ndarray | None = None
+    virtual: bool = False
+    optional: bool = False
+
+
+@dataclass
+class MarkerSet:
+    """A named collection of :class:`MarkerDef` plus solver hints."""
+
+    name: str
+    markers: dict[str, MarkerDef]
+    description: str = ""
+    paper_solver: dict[str, dict[str, Any]] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def physical(self) -> list[str]:
+        """Names of the markers expected in a trial (not virtual, not optional)."""
+        return [n for n, m in self.markers.items() if not m.virtual and not m.optional]
+
+
+def available_marker_sets() -> list[str]:
+    """Names of the marker sets shipped in ``marker_sets/``."""
+    return sorted(p.stem for p in MARKER_SET_DIR.glob("*.yaml"))
+
+
+def _resolve_path(name_or_path: str | os.PathLike) -> Path:
+    p = Path(name_or_path)
+    if p.suffix.lower() in (".yaml", ".yml"):
+        if not p.is_file():
+            raise InputError("no such marker-set file", p)
+        return p
+    candidate = MARKER_SET_DIR / f"{name_or_path}.yaml"
+    if not candidate.is_file():
+        raise InputError(f"unknown marker set (shipped: {', '.join(available_marker_sets())})", name_or_path)
+    return candidate
+
+
+def _parse_marker(name: str, spec: Any, path: Path, optional: bool) -> MarkerDef:
+    if not isinstance(spec, dict) or "bone" not in spec:
+        raise FormatError(f"marker {name!r} needs a mapping with at least 'bone'", path)
+    if "landmark" not in spec and "location" not in spec:
+        raise FormatError(f"marker {name!r} needs a 'landmark' or a 'location'", path)
+    location = spec.get("location")
+    if location is not None:
+        location = np.asarray(location, dtype=float).reshape(3)
+    return MarkerDef(
+        name=str(name), bone=str(spec["bone"]), landmark=spec.get("landmark"),
+        offset_mm=float(spec.get("offset_mm", 0.0)), tracks=list(spec.get("tracks", [spec["bone"]])),
+        aliases=[str(a) for a in spec.get("aliases", [])], description=str(spec.get("description", "")),
+        location=location, virtual=bool(spec.get("virtual", False)), optional=optional,
+    )
+
+
+def load_marker_set(name_or_path: str | os.PathLike, _seen: tuple[str, ...] = ()) -> MarkerSet:
+    """Load a marker set by shipped name (``"plug_in_gait_full_body"``) or YAML path.
+
+    Parameters
+    ----------
+    name_or_path : str or path-like
+        A name listed by :func:`available_marker_sets`, or a ``.yaml`` file.
+
+    Returns
+    -------
+    MarkerSet
+        With the markers of any ``extends`` chain merged in (the extending
+        set's definitions win).
+
+    Raises
+    ------
+    InputError
+        Unknown name or missing file.
+    FormatError
+        The YAML is malformed or a marker lacks its bone or landmark.
+    """
+    path = _resolve_path(name_or_path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise FormatError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("markers"), dict):
+        raise FormatError("a marker set needs a 'markers' mapping", path)
+    markers: dict[str, MarkerDef] = {}
+    paper: dict[str, dict[str, Any]] = {}
+    parent = doc.get("extends")
+    chain = _seen + (str(path.resolve()),)
+    if parent:
+        if str(_resolve_path(parent).resolve()) in chain:
+            raise FormatError(f"marker sets extend each other in a loop (through {parent})", path)
+        base = load_marker_set(parent, chain)
+        markers.update(base.markers)
+        paper.update(base.paper_solver)
+    for section, optional in (("markers", False), ("optional", True)):
+        for name, spec in (doc.get(section) or {}).items():
+            markers[str(name)] = _parse_marker(name, spec, path, optional)
+    paper.update(doc.get("paper_solver") or {})
+    for bone, rule in paper.items():
+        for key in ("proximal", "distal", "twist"):
+            if key not in rule:
+                raise FormatError(f"paper_solver entry for {bone!r} lacks {key!r}", path)
+    return MarkerSet(name=str(doc.get("name", path.stem)), markers=markers,
+                     description=str(doc.get("description", "")), paper_solver=paper, source=str(path))
+
+
+def check_marker_set(marker_set: MarkerSet, skeleton: Skeleton) -> None:
+    """Raise a clear error if the set names a bone or landmark the skeleton lacks.
+
+    Raises
+    ------
+    DataError
+        Naming every missing bone/landmark with the markers that need them.
+    """
+    problems = []
+    for m in marker_set.markers.values():
+        bone = skeleton.bones.get(m.bone)
+        if bone is None:
+            problems.append(f"{m.name}: no bone {m.bone!r}")
+        elif m.location is None and m.landmark not in bone.landmarks and m.landmark not in bone.joint_centres:
+            problems.append(f"{m.name}: bone {m.bone!r} has no landmark {m.landmark!r}")
+        for t in m.tracks:
+            if t not in skeleton.bones:
+                problems.append(f"{m.name}: tracks unknown bone {t!r}")
+    for bone in marker_set.paper_solver:
+        if bone not in skeleton.bones:
+            problems.append(f"paper_solver: no bone {bone!r}")
+    if problems:
+        raise DataError(f"marker set {marker_set.name!r} does not fit the skeleton: " + "; ".join(problems),
+                        marker_set.source or None)
+
+
+def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | None = None
+                  ) -> dict[str, np.ndarray]:
+    """Place markers on a skeleton at its reference pose.
+
+    Each marker sits at its landmark pushed ``offset_mm`` along the outward
+    normal of the bone surface nearest to the landmark (a bone without a mesh
+    uses the direction from the bone origin). Markers given by ``location`` are
+    mapped to the world directly.
+
+    Parameters
+    ----------
+    marker_set : MarkerSet
+    skeleton : Skeleton
+    names : list of str, optional
+        The markers to place (default: every non-virtual marker).
+
+    Returns
+    -------
+    dict of str -> ndarray (3,)
+        Marker centres in the skeleton's world frame, mm.
+    """
+    check_marker_set(marker_set, skeleton)
+    names = names if names is not None else [n for n, m in marker_set.markers.items() if not m.virtual]
+    by_bone: dict[str, list[MarkerDef]] = {}
+    for n in names:
+        m = marker_set.markers[n]
+        by_bone.setdefault(m.bone, []).append(m)
+    out: dict[str, np.ndarray] = {}
+    for bone_name, defs in by_bone.items():
+        bone = skeleton.bones[bone_name]
+        local = np.array([m.location if m.location is not None else
+                          (bone.landmarks.get(m.landmark) if m.landmark in bone.landmarks
+                           else bone.joint_centres[m.landmark]) for m in defs])
+        offsets = np.array([0.0 if m.location is not None else m.offset_mm for m in defs])
+        if bone.mesh is not None and np.any(offsets):
+            tm = bone.mesh.to_trimesh()
+            _, _, tri = tm.nearest.on_surface(local)
+            normals = tm.face_normals[tri]
+        else:
+            normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
+        local = local + offsets[:, None] * normals
+        world = local @ bone.bone_to_world[:3, :3].T + bone.bone_to_world[:3, 3]
+        out.update({m.name: p for m, p in zip(defs, world)})
+    return {n: out[n] for n in names}
+
+
+def match_labels(marker_set: MarkerSet, labels: list[str]) -> dict[str, str]:
+    """Map each marker of the set to the trial label that names it.
+
+    Labels are compared without case and without spaces, first by the
+    marker's own name, then by its aliases.
+
+    Returns
+    -------
+    dict of str -> str
+        ``{marker name: trial label}`` for the markers found.
+
+    Raises
+    ------
+    BonecapError
+        If two markers of the set claim the same trial label.
+    """
+    def key(s: str) -> str:
+        return s.replace(" ", "").replace("_", "").lower()
+
+    index = {key(lab): lab for lab in labels}
+    found: dict[str, str] = {}
+    for name, m in marker_set.markers.items():
+        for cand in [name, *m.aliases]:
+            if key(cand) in index:
+                found[name] = index[key(cand)]
+                break
+    claimed: dict[str, str] = {}
+    for name, lab in found.items():
+        if lab in claimed:
+            raise BonecapError(f"trial label {lab!r} matches both {claimed[lab]!r} and {name!r} "
+                               f"of marker set {marker_set.name!r}")
+        claimed[lab] = name
+    return found
