@@ -44,6 +44,12 @@ def atomic_path(target: str | os.PathLike, *, directory: bool = False) -> Iterat
         tmp = Path(name)
     try:
         yield tmp
+        # mkstemp/mkdtemp create 0600 files and 0700 folders; give the output
+        # the permissions a plain open() or mkdir() would have given it.
+        mask = os.umask(0)
+        os.umask(mask)
+        if tmp.exists():
+            os.chmod(tmp, (0o777 if directory else 0o666) & ~mask)
         if directory:
             if target.exists():
                 shutil.rmtree(target)
