@@ -865,7 +865,6 @@ def write_dicom_series(volume: Volume, folder: str | os.PathLike, *, series_desc
     ``RescaleSlope``. Geometry is written as decimal strings of at most 16
     characters, about 1e-12 mm of rounding.
     """
-    import pydicom
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, generate_uid
 
