@@ -24,7 +24,14 @@ Handler = Callable[[argparse.Namespace], int]
 def _cmd_inspect(args: argparse.Namespace) -> int:
     from bonecap.inspect import format_summary, inspect_path
 
+    # Every path is summarised before anything is written, so one bad input
+    # leaves no output at all.
     summaries = [inspect_path(p, subject=args.subject) for p in args.paths]
+    if args.out_dir:
+        from bonecap.inspect import write_summaries
+
+        for written in write_summaries(summaries, args.out_dir):
+            print(f"wrote {written}", file=sys.stderr)
     if args.json:
         out = summaries[0] if len(summaries) == 1 else summaries
         print(json.dumps(out, indent=2, default=str))
@@ -51,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("paths", nargs="+", metavar="PATH", help="file or DICOM folder")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--subject", metavar="NAME", help="C3D: the subject prefix to keep")
+    p.add_argument("-o", dest="out_dir", metavar="OUT_DIR",
+                   help="also write each summary as OUT_DIR/<name>.summary.json")
     p.set_defaults(handler=_cmd_inspect)
     return parser
 

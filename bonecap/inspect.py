@@ -8,13 +8,14 @@ turns it into a few human-readable lines.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
 
 from bonecap.errors import InputError
 
-__all__ = ["inspect_path", "format_summary", "kind_of_path"]
+__all__ = ["inspect_path", "format_summary", "kind_of_path", "write_summaries"]
 
 _VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".dcm")
 _MESH_SUFFIXES = (".ply", ".stl", ".obj", ".vtp", ".vtk")
@@ -112,3 +113,17 @@ def format_summary(summary: dict[str, Any], indent: str = "") -> str:
         else:
             lines.append(f"{indent}{key}: {_fmt(value)}")
     return "\n".join(lines)
+
+
+def write_summaries(summaries: list[dict[str, Any]], out_dir: str | os.PathLike) -> list[Path]:
+    """Write each summary as ``OUT_DIR/<input name>.summary.json`` (atomically)."""
+    from bonecap.io.atomic import atomic_path
+
+    written = []
+    for summary in summaries:
+        name = Path(str(summary["path"]).rstrip("/\\")).name or "input"
+        target = Path(out_dir) / f"{name}.summary.json"
+        with atomic_path(target) as tmp:
+            tmp.write_text(json.dumps(summary, indent=2, default=str))
+        written.append(target)
+    return written
