@@ -27,7 +27,7 @@ from bonecap.errors import BonecapError, DataError, FormatError, InputError
 from bonecap.model import Skeleton
 
 __all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
-           "check_marker_set", "place_markers", "match_labels"]
+           "marker_set_from_osim", "check_marker_set", "place_markers", "match_labels"]
 
 #: Folder of the marker sets shipped with bonecap (beside the package in the source tree).
 MARKER_SET_DIR = Path(__file__).resolve().parents[1] / "marker_sets"
@@ -94,7 +94,7 @@ def available_marker_sets() -> list[str]:
 
 def _resolve_path(name_or_path: str | os.PathLike) -> Path:
     p = Path(name_or_path)
-    if p.suffix.lower() in (".yaml", ".yml"):
+    if p.suffix.lower() in (".yaml", ".yml", ".osim"):
         if not p.is_file():
             raise InputError("no such marker-set file", p)
         return p
@@ -126,7 +126,8 @@ def load_marker_set(name_or_path: str | os.PathLike, _seen: tuple[str, ...] = ()
     Parameters
     ----------
     name_or_path : str or path-like
-        A name listed by :func:`available_marker_sets`, or a ``.yaml`` file.
+        A name listed by :func:`available_marker_sets`, a ``.yaml`` file, or an
+        OpenSim ``.osim`` model (its MarkerSet, see :func:`marker_set_from_osim`).
 
     Returns
     -------
@@ -142,6 +143,10 @@ def load_marker_set(name_or_path: str | os.PathLike, _seen: tuple[str, ...] = ()
         The YAML is malformed or a marker lacks its bone or landmark.
     """
     path = _resolve_path(name_or_path)
+    if path.suffix.lower() == ".osim":
+        from bonecap.skeleton.opensim import read_osim_markers
+
+        return marker_set_from_osim(read_osim_markers(path), name=path.stem, source=str(path))
     try:
         doc = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
@@ -168,6 +173,21 @@ def load_marker_set(name_or_path: str | os.PathLike, _seen: tuple[str, ...] = ()
                 raise FormatError(f"paper_solver entry for {bone!r} lacks {key!r}", path)
     return MarkerSet(name=str(doc.get("name", path.stem)), markers=markers,
                      description=str(doc.get("description", "")), paper_solver=paper, source=str(path))
+
+
+def marker_set_from_osim(markers, name: str = "opensim", source: str = "") -> MarkerSet:
+    """A marker set from an OpenSim MarkerSet (:func:`bonecap.skeleton.opensim.read_osim_markers`).
+
+    OpenSim binds each marker to a body at a fixed location, so the markers
+    are given by ``location`` (mm, body frame) rather than by landmark. Virtual
+    markers (joint centres such as ``RKJC`` or ``R_tibial_plateau``) keep
+    their flag: they are never expected in a trial.
+    """
+    defs = {m.name: MarkerDef(name=m.name, bone=m.body, location=np.asarray(m.location, dtype=float),
+                              tracks=[m.body], virtual=bool(m.virtual),
+                              description="virtual (computed point)" if m.virtual else "OpenSim marker")
+            for m in markers}
+    return MarkerSet(name=name, markers=defs, description=f"MarkerSet of {name}", source=source)
 
 
 def check_marker_set(marker_set: MarkerSet, skeleton: Skeleton) -> None:

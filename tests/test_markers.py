@@ -89,3 +89,26 @@ def test_missing_landmark_is_a_clear_error(tmp_path):
         check_marker_set(load_marker_set(ms), _box_skeleton())
     msg = str(exc.value)
     assert "A: bone 'block' has no landmark 'nowhere'" in msg and "B: no bone 'femur_r'" in msg
+
+
+def test_opensim_marker_set_places_like_opensim(shared_data):
+    """Rajagopal2016's MarkerSet as a marker set: 66 markers, 12 virtual, placed where
+    the independently derived ground coordinates put them."""
+    import csv
+
+    from bonecap.skeleton.opensim import read_osim
+
+    osim = shared_data / "bones/opensim/models/Rajagopal2016.osim"
+    ms = load_marker_set(osim)
+    assert len(ms.markers) == 66
+    virtual = {n for n, m in ms.markers.items() if m.virtual}
+    assert len(virtual) == 12 and "RKJC" in virtual and "RASI" not in virtual
+    assert set(ms.physical) == set(ms.markers) - virtual
+    placed = place_markers(ms, read_osim(osim, load_meshes=False), names=list(ms.markers))
+    rows = list(csv.DictReader(open(shared_data / "bones/opensim/rajagopal2016_default_pose_ply/markers_in_ground.csv")))
+    assert len(rows) == 66
+    cols = [c for c in rows[0] if "ground" in c.lower()]
+    assert len(cols) == 3, rows[0].keys()
+    for r in rows:
+        ref = np.array([float(r[c]) for c in cols]) * 1000.0  # metres -> mm
+        assert np.allclose(placed[r[next(iter(r))]], ref, atol=0.1), r
