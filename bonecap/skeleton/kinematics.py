@@ -1,0 +1,123 @@
+"""Forward kinematics of a :class:`~bonecap.model.Skeleton`: joint rotations -> bone poses.
+
+A skeleton's bones form a tree. Each child meets its parent at a joint centre
+that both bones list under the same name in ``joint_centres`` (the generic
+skeleton and the OpenSim reader both follow this rule). A pose of the whole
+skeleton is the root bone's pose plus, for every other bone, a rotation about
+its joint centre **expressed in the parent bone's frame**; translations at the
+joints are not modelled (ball joints), which is what the phantom's motion
+synthesis and the joint-coupled solvers need.
+
+Frames: ``bone_to_world`` of the reference pose maps a bone frame to the
+skeleton's world frame; the results here map each bone frame to the frame
+the root pose is given in (``root_to_lab``), usually the lab.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bonecap.model import Skeleton
+
+__all__ = ["proximal_joint", "pose_skeleton"]
+
+
+def proximal_joint(skeleton: Skeleton, bone: str) -> tuple[str, np.ndarray, np.ndarray]:
+    """The joint where ``bone`` meets its parent.
+
+    Returns
+    -------
+    name : str
+        The joint centre's name, shared by the bone and its parent.
+    centre_in_parent : ndarray (3,)
+        The joint centre in the parent's frame (mm).
+    centre_in_child : ndarray (3,)
+        The joint centre in the bone's own frame (mm).
+
+    Raises
+    ------
+    ValueError
+        If the bone is the root, or it shares no (or more than one) joint
+        centre name with its parent.
+    """
+    b = skeleton.bones[bone]
+    if b.parent is None:
+        raise ValueError(f"bone {bone!r} is the root: it has no proximal joint")
+    parent = skeleton.bones[b.parent]
+    shared = sorted(set(b.joint_centres) & set(parent.joint_centres))
+    if len(shared) != 1:
+        raise ValueError(f"bone {bone!r} and its parent {b.parent!r} must share exactly one joint centre name, "
+                         f"they share {shared or 'none'}")
+    name = shared[0]
+    return name, parent.joint_centres[name], b.joint_centres[name]
+
+
+def _as_matrices(rot, n_frames: int, bone: str) -> np.ndarray:
+    rot = np.asarray(rot, dtype=float)
+    if rot.shape[-2:] == (3, 3):
+        mats = rot
+    elif rot.shape[-1] == 3:
+        mats = Rotation.from_rotvec(rot.reshape(-1, 3)).as_matrix().reshape(rot.shape[:-1] + (3, 3))
+    else:
+        raise ValueError(f"rotation of bone {bone!r} must be (F, 3) rotation vectors or (F, 3, 3) matrices, "
+                         f"got shape {rot.shape}")
+    return np.broadcast_to(mats, (n_frames, 3, 3))
+
+
+def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
+                  joint_rotations: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """Bone poses for a sequence of joint rotations.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        Bones in parent-before-child order, one root.
+    root_to_lab : ndarray, shape (F, 4, 4) or (4, 4)
+        Pose of the root bone's frame in the lab for every frame.
+    joint_rotations : dict of str -> ndarray
+        For each non-root bone, its rotation about its proximal joint centre
+        relative to the reference pose, in the **parent bone's frame**: (F, 3)
+        rotation vectors (radians) or (F, 3, 3) matrices. A bone left out keeps
+        its reference orientation relative to its parent.
+
+    Returns
+    -------
+    ndarray, shape (F, B, 4, 4)
+        ``bone_to_lab`` for each bone of ``skeleton.names``. With all rotations
+        zero and ``root_to_lab`` equal to the root's ``bone_to_world``, this is
+        the reference pose.
+    """
+    root_to_lab = np.asarray(root_to_lab, dtype=float)
+    if root_to_lab.shape == (4, 4):
+        root_to_lab = root_to_lab[None]
+    if root_to_lab.ndim != 3 or root_to_lab.shape[1:] != (4, 4):
+        raise ValueError(f"root_to_lab must be (F, 4, 4) or (4, 4), got {root_to_lab.shape}")
+    joint_rotations = joint_rotations or {}
+    unknown = set(joint_rotations) - set(skeleton.bones)
+    if unknown:
+        raise ValueError(f"rotations given for bones not in the skeleton: {sorted(unknown)}")
+    F = root_to_lab.shape[0]
+    names = skeleton.names
+    index = {n: i for i, n in enumerate(names)}
+    out = np.zeros((F, len(names), 4, 4))
+    roots = [n for n in names if skeleton.bones[n].parent is None]
+    if len(roots) != 1:
+        raise ValueError(f"the skeleton must have exactly one root bone, it has {roots}")
+    for i, name in enumerate(names):
+        bone = skeleton.bones[name]
+        if bone.parent is None:
+            out[:, i] = root_to_lab
+            continue
+        if index[bone.parent] > i:
+            raise ValueError(f"bone {name!r} comes before its parent {bone.parent!r}")
+        _, c_parent, _ = proximal_joint(skeleton, name)
+        parent_to_world = skeleton.bones[bone.parent].bone_to_world
+        rest = np.linalg.solve(parent_to_world, bone.bone_to_world)  # child -> parent at rest
+        J = np.tile(np.eye(4), (F, 1, 1))
+        if name in joint_rotations:
+            R = _as_matrices(joint_rotations[name], F, name)
+            J[:, :3, :3] = R
+            J[:, :3, 3] = c_parent - R @ c_parent  # rotate about the joint centre
+        out[:, i] = out[:, index[bone.parent]] @ J @ rest
+    return out

@@ -1,0 +1,70 @@
+"""Forward kinematics: reference pose, joint-centre continuity, agreement with OpenSim's chain."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bonecap.skeleton.kinematics import pose_skeleton, proximal_joint
+from bonecap.skeleton.opensim import read_osim
+
+
+@pytest.fixture(scope="module")
+def rajagopal(shared_data):
+    return shared_data / "bones/opensim/models/Rajagopal2016.osim"
+
+
+def _rest(skel):
+    return np.stack([b.bone_to_world for b in skel.bones.values()])
+
+
+def test_zero_rotations_give_the_reference_pose(rajagopal):
+    skel = read_osim(rajagopal, load_meshes=False)
+    root = skel.bones[skel.names[0]].bone_to_world
+    poses = pose_skeleton(skel, root)
+    assert np.allclose(poses[0], _rest(skel), atol=1e-9)
+
+
+def test_joint_centres_stay_together_under_random_rotations(rajagopal):
+    skel = read_osim(rajagopal, load_meshes=False)
+    rng = np.random.default_rng(3)
+    F = 7
+    rots = {n: rng.normal(scale=0.6, size=(F, 3)) for n in skel.names[1:]}
+    root = np.tile(np.eye(4), (F, 1, 1))
+    root[:, :3, 3] = rng.normal(scale=500, size=(F, 3))
+    poses = pose_skeleton(skel, root, rots)
+    idx = {n: i for i, n in enumerate(skel.names)}
+    for name in skel.names[1:]:
+        joint, c_parent, c_child = proximal_joint(skel, name)
+        parent = skel.bones[name].parent
+        a = poses[:, idx[parent], :3, :3] @ c_parent + poses[:, idx[parent], :3, 3]
+        b = poses[:, idx[name], :3, :3] @ c_child + poses[:, idx[name], :3, 3]
+        assert np.allclose(a, b, atol=1e-6), (name, joint)
+        # and every pose stays rigid
+        R = poses[:, idx[name], :3, :3]
+        assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+
+
+def test_hip_rotation_moves_the_whole_leg_like_opensim(rajagopal):
+    """Flex the right hip in OpenSim's own chain; the same rotation at our hip centre
+    must put femur, tibia and foot where the OpenSim reader puts them."""
+    rest = read_osim(rajagopal, load_meshes=False)
+    flexed = read_osim(rajagopal, load_meshes=False, coordinates={"hip_flexion_r": 0.7, "hip_adduction_r": -0.2})
+    P = rest.bones["pelvis"].bone_to_world
+    F0, Fq = rest.bones["femur_r"].bone_to_world, flexed.bones["femur_r"].bone_to_world
+    R = (np.linalg.inv(P) @ Fq @ np.linalg.inv(F0) @ P)[:3, :3]  # femur rotation in the pelvis frame
+    poses = pose_skeleton(rest, P, {"femur_r": R[None]})
+    idx = {n: i for i, n in enumerate(rest.names)}
+    for name in ("femur_r", "tibia_r", "calcn_r", "toes_r", "femur_l"):
+        assert np.allclose(poses[0, idx[name]], flexed.bones[name].bone_to_world, atol=1e-6), name
+    assert not np.allclose(poses[0, idx["tibia_r"]], rest.bones["tibia_r"].bone_to_world, atol=1.0)
+
+
+def test_bad_input(rajagopal):
+    skel = read_osim(rajagopal, load_meshes=False)
+    with pytest.raises(ValueError, match="not in the skeleton"):
+        pose_skeleton(skel, np.eye(4), {"wing": np.zeros((1, 3))})
+    with pytest.raises(ValueError, match="root"):
+        proximal_joint(skel, "pelvis")
+    with pytest.raises(ValueError, match="rotation"):
+        pose_skeleton(skel, np.eye(4), {"femur_r": np.zeros((1, 4))})
