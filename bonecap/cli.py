@@ -40,6 +40,19 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from bonecap.demo import format_report, run_demo
+
+    report = run_demo(args.out_dir, args.generic, n_frames=args.frames, seed=args.seed)
+    print(format_report(report))
+    return 0
+
+
+def _add_generic(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--generic", default="default", metavar="default|MODEL.osim",
+                   help="template skeleton: bonecap's embedded one (default) or an OpenSim model")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bonecap",
@@ -61,6 +74,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", dest="out_dir", metavar="OUT_DIR",
                    help="also write each summary as OUT_DIR/<name>.summary.json")
     p.set_defaults(handler=_cmd_inspect)
+
+    p = sub.add_parser(
+        "demo",
+        help="run every stage that exists, end to end, on the embedded default",
+        description="Build the template skeleton, write its meshes and pictures, place its markers, "
+        "move it by a synthetic motion written as a C3D trial, recover the motion from that trial "
+        "and export it as an animated glTF.",
+    )
+    p.add_argument("-o", dest="out_dir", required=True, metavar="OUT_DIR", help="output folder")
+    _add_generic(p)
+    p.add_argument("--frames", type=int, default=200, help="length of the synthetic trial (default 200)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the marker noise")
+    p.set_defaults(handler=_cmd_demo)
     return parser
 
 

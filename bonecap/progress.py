@@ -17,3 +17,8 @@ def progress(iterable: Iterable[T], desc: str, total: int | None = None, unit: s
     (CI logs, pipes), so logs do not fill with carriage returns.
     """
     return tqdm(iterable, desc=desc, total=total, unit=unit, file=sys.stderr, disable=None, leave=False)
+
+
+def stage_bar(total: int, desc: str) -> tqdm:
+    """A bar advanced by hand (``bar.update()``) over the stages of a command; use as a context manager."""
+    return tqdm(total=total, desc=desc, unit="stage", file=sys.stderr, disable=None, leave=False)

@@ -105,6 +105,7 @@ import numpy as np
 
 from bonecap.errors import DataError, FormatError, InputError
 from bonecap.io.atomic import atomic_path
+from bonecap.progress import progress
 from bonecap.model import Volume
 
 __all__ = [
@@ -206,7 +207,7 @@ def _scan_dicom(folder: Path, recursive: bool, series_uid: str | None) -> list[_
     n_dicom = 0
     skipped: dict[str, int] = defaultdict(int)
     slices: list[_Slice] = []
-    for path in files:
+    for path in progress(files, desc=f"scan {folder.name}", unit="file"):
         try:
             ds = pydicom.dcmread(path, stop_before_pixels=True)
         except InvalidDicomError:
@@ -388,7 +389,7 @@ def _assemble(group: list[_Slice], folder: Path) -> Volume:
 
     data = np.empty((cols, rows, n), dtype=np.float32)
     syntaxes = []
-    for k, s in enumerate(group):
+    for k, s in enumerate(progress(group, desc="read slices", unit="slice")):
         ds = None
         try:
             ds = pydicom.dcmread(s.path)
