@@ -79,7 +79,9 @@ def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
         For each non-root bone, its rotation about its proximal joint centre
         relative to the reference pose, in the **parent bone's frame**: (F, 3)
         rotation vectors (radians) or (F, 3, 3) matrices. A bone left out keeps
-        its reference orientation relative to its parent.
+        its reference orientation relative to its parent and needs no joint
+        centre; a rotated bone must share exactly one joint centre name with
+        its parent (:func:`proximal_joint`).
 
     Returns
     -------
@@ -111,11 +113,13 @@ def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
             continue
         if index[bone.parent] > i:
             raise ValueError(f"bone {name!r} comes before its parent {bone.parent!r}")
-        _, c_parent, _ = proximal_joint(skeleton, name)
         parent_to_world = skeleton.bones[bone.parent].bone_to_world
         rest = np.linalg.solve(parent_to_world, bone.bone_to_world)  # child -> parent at rest
         J = np.tile(np.eye(4), (F, 1, 1))
         if name in joint_rotations:
+            # Only a rotated bone needs its joint centre; one that just follows its
+            # parent (a sternum on T1) may have none.
+            _, c_parent, _ = proximal_joint(skeleton, name)
             R = _as_matrices(joint_rotations[name], F, name)
             J[:, :3, :3] = R
             J[:, :3, 3] = c_parent - R @ c_parent  # rotate about the joint centre
