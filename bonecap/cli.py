@@ -48,6 +48,22 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_phantom(args: argparse.Namespace) -> int:
+    from bonecap.phantom import make_phantom
+
+    summary = make_phantom(args.out_dir, seed=args.seed, stature_mm=args.stature * 1000.0 if args.stature else None,
+                           generic=args.generic, preset=args.preset)
+    print(f"phantom seed {summary['seed']} ({summary['preset']}): {summary['bones']} bones, "
+          f"stature {summary['stature_mm']:.0f} mm")
+    print(f"  MRI: {len(summary['stations'])} stations and forearm stacks "
+          f"{', '.join(summary['forearm_stacks'])} deg in {args.out_dir}/mri")
+    print(f"  trials: {', '.join(summary['trials'])} in {args.out_dir}/trials")
+    print(f"  truth: {args.out_dir}/truth (formats in truth/README.md)")
+    print(f"  took {sum(summary['timings_s'].values()):.1f} s: "
+          + ", ".join(f"{k} {v:.1f}" for k, v in summary["timings_s"].items()))
+    return 0
+
+
 def _add_generic(p: argparse.ArgumentParser) -> None:
     p.add_argument("--generic", default="default", metavar="default|MODEL.osim",
                    help="template skeleton: bonecap's embedded one (default) or an OpenSim model")
@@ -87,6 +103,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=200, help="length of the synthetic trial (default 200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the marker noise")
     p.set_defaults(handler=_cmd_demo)
+
+    p = sub.add_parser(
+        "phantom",
+        help="make a synthetic subject with ground truth: MRI stations, forearm stacks, C3D trials",
+        description="Make a synthetic subject (a varied skeleton and body) with whole-body MRI stations, "
+        "forearm stacks with oil capsules, motion-capture trials and the ground truth of all of them.",
+    )
+    p.add_argument("-o", dest="out_dir", required=True, metavar="OUT_DIR", help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="seed (everything is deterministic for it)")
+    p.add_argument("--stature", type=float, metavar="M", help="stature in metres (default: drawn around 1.70)")
+    _add_generic(p)
+    p.add_argument("--preset", choices=["tiny", "default"], default="default",
+                   help="tiny: a few coarse stations and short trials (for tests); default: the full subject")
+    p.set_defaults(handler=_cmd_phantom)
     return parser
 
 

@@ -1,0 +1,53 @@
+"""``bonecap demo``: every stage that exists, end to end, on a template."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bonecap.io.c3d import read_c3d
+from bonecap.io.gltf import summarize_gltf
+from gltf_validation import assert_clean, run_validator
+
+
+def _check_demo(out, report):
+    assert report["skeleton"]["bones_with_mesh"] > 10
+    assert len(list((out / "skeleton/meshes").glob("*.ply"))) == report["skeleton"]["bones_with_mesh"]
+    assert len(report["outputs"]["pictures"]) == 2
+    for png in report["outputs"]["pictures"]:
+        assert Path(png).suffix == ".png" and Path(png).stat().st_size > 10_000
+    trial = read_c3d(report["outputs"]["trial_c3d"])
+    assert trial.n_frames == report["motion"]["frames"] and len(trial.labels) == report["markers"]["placed"]
+    # 0.5 mm marker noise: the rigid fit over all markers recovers the motion far better than that
+    assert report["motion"]["rotation_error_deg_max"] < 0.5
+    assert report["motion"]["origin_error_mm_max"] < 2.0
+    assert 0.3 < report["motion"]["marker_residual_mm_rms"] < 1.2
+    anim = summarize_gltf(report["outputs"]["animation_glb"])
+    assert anim["animations"] == 1 and anim["frames"] == trial.n_frames
+    assert anim["duration"] == pytest.approx((trial.n_frames - 1) / trial.rate, rel=1e-4)
+    for key in ("animation_glb", "skeleton_glb"):
+        assert_clean(run_validator(report["outputs"][key]))
+    assert json.loads((out / "report.json").read_text())["motion"] == report["motion"]
+
+
+def test_demo_on_an_opensim_template(shared_data, tmp_path):
+    from bonecap.demo import run_demo
+
+    out = tmp_path / "demo"
+    report = run_demo(out, shared_data / "bones/opensim/models/Rajagopal2016.osim", n_frames=60)
+    assert report["markers"]["placed"] == 54  # Rajagopal's 66 markers less its 12 virtual ones
+    _check_demo(out, report)
+
+
+def test_demo_cli_on_the_default_template(tmp_path, cli):
+    out = tmp_path / "demo"
+    res = cli("demo", "-o", out, "--frames", "40")
+    assert res.returncode == 0, res.stderr
+    assert "animated bones" in res.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert report["markers"]["set"] == "plug_in_gait_full_body" and report["markers"]["placed"] == 39
+    _check_demo(out, report)
+    assert np.isfinite(report["skeleton"]["triangles"])
