@@ -11,6 +11,9 @@ Stages run today:
    (walking forward while turning), write the markers it carries as a C3D
    trial with 0.5 mm noise, read that trial back, recover the motion with the
    rigid-fit core, and export the recovered motion as an animated glTF.
+5. **Phantom**: a reduced synthetic subject (``bonecap phantom --preset
+   tiny``): a varied skeleton and body, MRI stations and forearm stacks,
+   trials, and their truth.
 
 Each later stage (phantom, build-subject, animate) extends this module.
 """
@@ -63,7 +66,7 @@ def _write_csv(path: Path, rows: list[list[Any]], header: list[str]) -> None:
 
 
 def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default", *, n_frames: int = 200,
-             rate: float = 100.0, seed: int = 0) -> dict[str, Any]:
+             rate: float = 100.0, seed: int = 0, phantom: bool = True) -> dict[str, Any]:
     """Run every stage that exists on the template and write the results under ``out_dir``.
 
     Parameters
@@ -75,7 +78,9 @@ def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default",
     n_frames, rate : int, float
         Length and rate of the synthetic trial.
     seed : int
-        Seed of the marker noise.
+        Seed of the marker noise and of the phantom.
+    phantom : bool
+        Also make the reduced phantom subject (stage 5).
 
     Returns
     -------
@@ -85,7 +90,7 @@ def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default",
     """
     out = Path(out_dir)
     report: dict[str, Any] = {"generic": str(generic), "outputs": {}}
-    bar = stage_bar(4, "demo")
+    bar = stage_bar(5, "demo")
 
     # 1. Template and its meshes.
     bar.set_postfix_str("template")
@@ -155,6 +160,17 @@ def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default",
     report["outputs"]["trial_c3d"] = str(trial_path)
     report["outputs"]["animation_glb"] = str(anim)
 
+    # 5. A reduced phantom subject with its truth.
+    bar.update()
+    bar.set_postfix_str("phantom")
+    if phantom:
+        from bonecap.phantom import make_phantom
+
+        ph = make_phantom(out / "phantom", seed=seed, generic=generic, preset="tiny")
+        report["phantom"] = {"seed": ph["seed"], "preset": ph["preset"], "stature_mm": ph["stature_mm"],
+                             "stations": len(ph["stations"]), "forearm_stacks": ph["forearm_stacks"],
+                             "trials": ph["trials"], "seconds": round(sum(ph["timings_s"].values()), 1)}
+        report["outputs"]["phantom"] = str(out / "phantom")
     bar.update()
     bar.close()
     with atomic_path(out / "report.json") as tmp:
@@ -178,6 +194,11 @@ def format_report(report: dict[str, Any]) -> str:
         f"origin error <= {mo['origin_error_mm_max']:.2f} mm, marker residual RMS "
         f"{mo['marker_residual_mm_rms']:.2f} mm",
         f"  animated bones: {o['animation_glb']}",
-        f"report: {o['report']}",
     ]
+    if "phantom" in report:
+        p = report["phantom"]
+        lines.append(f"phantom (seed {p['seed']}, {p['preset']}): stature {p['stature_mm']:.0f} mm, "
+                     f"{p['stations']} MRI stations, forearm stacks at {', '.join(p['forearm_stacks'])} deg, "
+                     f"trials {', '.join(p['trials'])} -> {o['phantom']} ({p['seconds']} s)")
+    lines.append(f"report: {o['report']}")
     return "\n".join(lines)

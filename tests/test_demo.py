@@ -37,7 +37,7 @@ def test_demo_on_an_opensim_template(shared_data, tmp_path):
     from bonecap.demo import run_demo
 
     out = tmp_path / "demo"
-    report = run_demo(out, shared_data / "bones/opensim/models/Rajagopal2016.osim", n_frames=60)
+    report = run_demo(out, shared_data / "bones/opensim/models/Rajagopal2016.osim", n_frames=60, phantom=False)
     assert report["markers"]["placed"] == 54  # Rajagopal's 66 markers less its 12 virtual ones
     _check_demo(out, report)
 
@@ -51,3 +51,8 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
     assert report["markers"]["set"] == "plug_in_gait_full_body" and report["markers"]["placed"] == 39
     _check_demo(out, report)
     assert np.isfinite(report["skeleton"]["triangles"])
+    # stage 5: the reduced phantom and its truth
+    assert report["phantom"]["stations"] >= 3 and len(report["phantom"]["forearm_stacks"]) == 3
+    assert (out / "phantom/truth/README.md").is_file()
+    assert sorted(p.name for p in (out / "phantom/trials").glob("*.c3d")) == sorted(
+        f"{t}.c3d" for t in report["phantom"]["trials"])

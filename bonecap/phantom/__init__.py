@@ -1,0 +1,297 @@
+"""``bonecap phantom``: a synthetic subject with ground truth, the measuring stick of every stage.
+
+No public whole-body MRI with bone labels exists, so bonecap makes its own
+subject and keeps the truth:
+
+- :mod:`bonecap.phantom.subject` -- a person, not the template: the skeleton
+  varied non-affinely per seed, plus a body model (muscle, fat, skin);
+- :mod:`bonecap.phantom.mri` / :mod:`bonecap.phantom.render` -- whole-body MRI
+  stations rendered from the meshes with partial volume, knee-measured tissue
+  contrast, bias and Rician noise, each station moved a little against the truth;
+- :mod:`bonecap.phantom.forearm` -- the forearm posed at the paper's twists for
+  the forearm stacks (with oil capsules on the skin);
+- :mod:`bonecap.phantom.trials` -- C3D trials with soft-tissue artefact and gaps.
+
+:func:`make_phantom` runs them all and writes ``OUT_DIR/mri``,
+``OUT_DIR/trials`` and ``OUT_DIR/truth`` (formats in ``truth/README.md``,
+written by :func:`write_truth_readme`).
+
+Frames: the subject is built in the template world ``"model"`` (X anterior,
+Y up, Z right, mm). Everything written beside the MRI (truth meshes, labels,
+capsules, forearm axes) is in the **LPS** patient frame of the DICOM stacks,
+``MODEL_TO_LPS`` away; the trials and their truth poses are in the Z-up lab.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bonecap.errors import InputError
+from bonecap.io.atomic import atomic_path
+from bonecap.io.imaging import write_nifti
+from bonecap.io.mesh import write_mesh
+from bonecap.model import Mesh, Volume
+from bonecap.phantom.forearm import MODEL_TO_LPS, pose_forearm
+from bonecap.progress import stage_bar
+
+__all__ = ["PRESETS", "FOREARM_TWISTS_DEG", "make_phantom", "write_truth_readme", "MODEL_TO_LPS"]
+
+#: The paper's measured forearm twists (it labelled them 0/90/180).
+FOREARM_TWISTS_DEG = (0.0, 99.5, 172.1)
+
+#: Acquisition and trial settings per preset. ``tiny`` is for the tests
+#: (coarse, a few stations, short trials); ``default`` is the paper's set-up.
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {"n_stations": 8, "pixel_mm": 1.8, "pitch_mm": 5.0, "thickness_mm": 5.0, "supersample": 4,
+                "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
+                "duration_scale": 1.0, "merged_voxel_mm": 2.0},
+    "tiny": {"n_stations": 3, "pixel_mm": 4.0, "pitch_mm": 10.0, "thickness_mm": 10.0, "supersample": 2,
+             "through": 2, "forearm_pixel_mm": 1.5, "forearm_pitch_mm": 5.0, "n_capsules": 6,
+             "duration_scale": 0.2, "merged_voxel_mm": 6.0},
+}
+
+
+def _to_lps(mesh: Mesh) -> Mesh:
+    return mesh.transformed(MODEL_TO_LPS, "lps")
+
+
+def _twist_name(theta: float) -> str:
+    return f"{theta:g}"
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2))
+
+
+def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float | None = None,
+                 generic: str | os.PathLike = "default", preset: str = "default") -> dict[str, Any]:
+    """Make a synthetic subject: MRI stations, forearm stacks, trials and the truth.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        Output folder; ``mri/``, ``trials/``, ``truth/`` and ``phantom.json``
+        are written in it.
+    seed : int
+        Everything is deterministic for a seed.
+    stature_mm : float, optional
+        Stature; drawn around 1.70 m when not given.
+    generic : str or path-like
+        ``"default"`` or an OpenSim ``.osim`` model. With a model, the trial
+        markers are its MarkerSet without its virtual markers.
+    preset : {"default", "tiny"}
+        ``tiny``: a few coarse stations and short trials, for the tests.
+
+    Returns
+    -------
+    dict
+        The summary also written to ``phantom.json``.
+    """
+    from bonecap.markers import load_marker_set
+    from bonecap.phantom.mri import ForearmPose, plan_stations, render_forearm_stacks, render_stations
+    from bonecap.phantom.subject import make_subject
+    from bonecap.phantom.trials import make_trials
+    from bonecap.skeleton.template import template_marker_set
+
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset (choose from {', '.join(PRESETS)})", preset)
+    if stature_mm is not None and not 1000.0 <= stature_mm <= 2300.0:
+        raise InputError(f"stature must be between 1.0 and 2.3 m, got {stature_mm / 1000:g} m")
+    cfg = PRESETS[preset]
+    out = Path(out_dir)
+    truth = out / "truth"
+    rng = np.random.default_rng(seed)
+    timings: dict[str, float] = {}
+    bar = stage_bar(5, "phantom")
+
+    # 1. The subject.
+    t0 = time.perf_counter()
+    bar.set_postfix_str("subject")
+    subject = make_subject(seed, stature_mm, generic, preset=preset)
+    skeleton = subject.skeleton
+    bone_ids = {name: i + 1 for i, name in enumerate(n for n, b in skeleton.bones.items() if b.mesh is not None)}
+    layers = [(_to_lps(m), tissue) for m, tissue in subject.layers()]
+    label_meshes = [(_to_lps(skeleton.world_mesh(n)), i) for n, i in bone_ids.items()]
+    timings["subject"] = time.perf_counter() - t0
+    bar.update()
+
+    # 2. Whole-body stations.
+    t0 = time.perf_counter()
+    bar.set_postfix_str("stations")
+    skin_lps = layers[0][0]
+    plans = plan_stations(skin_lps, n_stations=cfg["n_stations"], pixel_mm=cfg["pixel_mm"],
+                          pitch_mm=cfg["pitch_mm"], thickness_mm=cfg["thickness_mm"], rng=rng)
+    labels_dir = truth / "labels"
+
+    def save_station_labels(st) -> None:
+        write_nifti(st.labels, labels_dir / f"{st.plan.name}_oracle.nii.gz")
+
+    stations = render_stations(layers, plans, out / "mri", rng, label_meshes=label_meshes,
+                               merged_voxel_mm=cfg["merged_voxel_mm"], inplane_supersample=cfg["supersample"],
+                               through_plane_samples=cfg["through"], on_station=save_station_labels,
+                               keep_labels=False, patient={"patient_name": f"Phantom^{seed}",
+                                                           "patient_id": f"PHANTOM{seed:04d}"})
+    if stations.merged_labels is not None:
+        write_nifti(stations.merged_labels, labels_dir / "merged.nii.gz")
+    timings["stations"] = time.perf_counter() - t0
+    bar.update()
+
+    # 3. Forearm stacks at the paper's twists.
+    t0 = time.perf_counter()
+    bar.set_postfix_str("forearm")
+    poses, forearm_truth = {}, {}
+    for theta in FOREARM_TWISTS_DEG:
+        posed = pose_forearm(skeleton, subject.skin, subject.muscle, theta, side="r")
+        f_layers = [(_to_lps(posed.skin), "fat"), (_to_lps(posed.muscle), "muscle")]
+        f_labels = []
+        for name, bone in skeleton.bones.items():
+            if bone.mesh is None:
+                continue
+            T = MODEL_TO_LPS @ posed.bone_to_world.get(name, bone.bone_to_world)
+            f_layers.append((bone.mesh.transformed(T, "lps"), "cortex"))
+            if bone.inner_mesh is not None:
+                f_layers.append((bone.inner_mesh.transformed(T, "lps"), "marrow"))
+            if name in posed.bone_to_world:
+                f_labels.append((bone.mesh.transformed(T, "lps"), bone_ids[name]))
+        axis = np.stack([posed.elbow, posed.wrist]) @ MODEL_TO_LPS[:3, :3].T
+        poses[_twist_name(theta)] = ForearmPose(f_layers, axis, skin=f_layers[0][0], label_meshes=f_labels)
+        forearm_truth[_twist_name(theta)] = {
+            "theta_deg": theta,
+            "radioulnar_axis_lps": (posed.axis_ends @ MODEL_TO_LPS[:3, :3].T).tolist(),
+            "bone_to_lps": {n: (MODEL_TO_LPS @ T).tolist() for n, T in posed.bone_to_world.items()},
+        }
+    stacks, placement = render_forearm_stacks(
+        poses, out / "mri", rng, n_capsules=cfg["n_capsules"], pixel_mm=cfg["forearm_pixel_mm"],
+        pitch_mm=cfg["forearm_pitch_mm"], thickness_mm=cfg["forearm_pitch_mm"],
+        inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"],
+        study_uid=stations.study_uid)
+    for name, st in stacks.items():
+        forearm_truth[name]["folder"] = str(st.folder.relative_to(out))
+        forearm_truth[name]["capsule_centres_lps"] = np.asarray(st.capsule_centres).tolist()
+        forearm_truth[name]["stack"] = st.plan.to_dict()
+        if st.labels is not None:
+            write_nifti(st.labels, labels_dir / f"forearm_{name}_oracle.nii.gz")
+    timings["forearm"] = time.perf_counter() - t0
+    bar.update()
+
+    # 4. Trials.
+    t0 = time.perf_counter()
+    bar.set_postfix_str("trials")
+    marker_set = load_marker_set("kojima_paper") if str(generic) == "default" else template_marker_set(generic)
+    trials = make_trials(skeleton, marker_set, out, skin=subject.skin, seed=seed,
+                         duration_scale=cfg["duration_scale"])
+    timings["trials"] = time.perf_counter() - t0
+    bar.update()
+
+    # 5. The rest of the truth.
+    t0 = time.perf_counter()
+    bar.set_postfix_str("truth")
+    meshes_dir = truth / "meshes"
+    for name in bone_ids:
+        write_mesh(_to_lps(skeleton.world_mesh(name)), meshes_dir / f"{name}.ply")
+    write_mesh(skin_lps, meshes_dir / "skin.ply")
+    write_mesh(layers[1][0], meshes_dir / "muscle.ply")
+    _write_json(truth / "labels.json", {"ids": bone_ids, "background": 0,
+                                        "frame": "LPS (NIfTI files store RAS; readers convert)"})
+    _write_json(truth / "stations.json", {"stations": [st.plan.to_dict() for st in stations.stations],
+                                          "study_uid": stations.study_uid})
+    _write_json(truth / "forearm.json", {"side": "r", "poses": forearm_truth,
+                                         "capsule_radius_mm": placement.radius_mm})
+    _write_json(truth / "skeleton.json", _skeleton_truth(skeleton))
+    _write_json(truth / "subject.json", _jsonable({"seed": seed, "generic": str(generic), "preset": preset,
+                                                   "params": subject.params}))
+    write_truth_readme(truth / "README.md")
+    timings["truth"] = time.perf_counter() - t0
+    bar.update()
+    bar.close()
+
+    summary = {
+        "seed": seed, "generic": str(generic), "preset": preset,
+        "stature_mm": float(subject.params.get("stature_mm", np.nan)),
+        "bones": len(bone_ids),
+        "stations": [{"name": st.plan.name, "shape": list(st.plan.shape),
+                      "shift_mm": round(st.plan.shift_mm, 3), "rotation_deg": round(st.plan.rotation_deg, 4)}
+                     for st in stations.stations],
+        "forearm_stacks": sorted(stacks),
+        "trials": sorted(trials.get("trials", {})) if isinstance(trials.get("trials"), dict) else trials.get(
+            "trials"),
+        "timings_s": {k: round(v, 2) for k, v in timings.items()},
+        "out_dir": str(out),
+    }
+    _write_json(out / "phantom.json", _jsonable(summary))
+    return summary
+
+
+def _skeleton_truth(skeleton) -> dict[str, Any]:
+    """Bones of the true skeleton at the MRI pose in LPS: parent, pose, joint centres, landmarks."""
+    out = {}
+    for name, b in skeleton.bones.items():
+        T = MODEL_TO_LPS @ b.bone_to_world
+        out[name] = {
+            "parent": b.parent,
+            "bone_to_lps": T.tolist(),
+            "joint_centres_lps": {k: (T[:3, :3] @ v + T[:3, 3]).tolist() for k, v in b.joint_centres.items()},
+            "landmarks_lps": {k: (T[:3, :3] @ v + T[:3, 3]).tolist() for k, v in b.landmarks.items()},
+        }
+    return {"frame": "LPS, mm, MRI pose", "bones": out}
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        return obj.item()
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, Volume):
+        return {"shape": list(obj.shape)}
+    return str(obj)
+
+
+TRUTH_README = """\
+# Phantom truth
+
+Everything a stage of bonecap can be scored against. Lengths in mm, times in s.
+Frames: **LPS** (the patient frame of the DICOM stacks in `../mri/`: +x left,
++y posterior, +z superior) for everything beside the MRI; the **Z-up lab** of
+the C3D trials for the motion truth.
+
+| file | content |
+|---|---|
+| `meshes/<bone>.ply` | each bone's outer surface at the MRI pose, LPS |
+| `meshes/skin.ply`, `meshes/muscle.ply` | skin and fascia (inner boundary of the subcutaneous fat), LPS |
+| `labels.json` | bone label ids (`ids`: bone -> id, 0 = background) |
+| `labels/station_<k>_oracle.nii.gz` | the oracle: the truth meshes, moved as the body lay during that station, voxelised on the station's own acquisition grid (the best any segmentation can reach there); aligned voxel for voxel with `../mri/station_<k>` |
+| `labels/merged.nii.gz` | bone labels of the unmoved truth on one common grid |
+| `labels/forearm_<twist>_oracle.nii.gz` | oracle labels of the posed radius and hand bones (and the ulna) on each forearm stack's grid |
+| `stations.json` | per station: the nominal `affine_voxel_to_lps` written in its DICOM header, `shape`, `slice_thickness_mm`, `true_to_nominal` (4x4, `p_nominal = T @ p_true`: where a point of the true body lay during that station; the body was imaged moved by it), `shift_mm`, `rotation_deg`, `intensity_scale` |
+| `forearm.json` | per forearm twist: `theta_deg`, `radioulnar_axis_lps` (radial-head end, ulnar-head end), `bone_to_lps` of the bones that moved, `capsule_centres_lps`, the stack's geometry; `capsule_radius_mm` |
+| `skeleton.json` | the true skeleton at the MRI pose: per bone `parent`, `bone_to_lps`, `joint_centres_lps`, `landmarks_lps` |
+| `subject.json` | seed, template, preset and every drawn parameter (stature, segment scales, femoral anteversion and neck angle, bowing, pelvis width, body shape) |
+| `marker_binding.yaml` | the true marker -> bone binding: bone, position in the bone frame (mm), placement, soft-tissue-artefact class |
+| `<trial>_poses.npz` | per trial, with the keys `bonecap animate` writes: `bones` (names), `times` (s from 0), `first_frame`, `transforms` (frames x bones x 4 x 4, bone frame -> lab, mm), `valid` (frames x bones); plus `markers`, `marker_truth` (markers without artefact or noise, lab mm), `sta` (the artefact added), `noise`, `gaps`, `joint_names`, `joint_centres` (frames x joints x 3, lab mm), joint angles, and for the pronation trial `forearm_twist_deg` |
+
+Bone frames follow the template's (ISB for the embedded skeleton; the OpenSim
+body frames for an `.osim` template).
+"""
+
+
+def write_truth_readme(path: str | os.PathLike) -> Path:
+    """Write the README that documents every truth file's format."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(TRUTH_README)
+    return path

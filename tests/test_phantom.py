@@ -1,0 +1,102 @@
+"""``bonecap phantom`` end to end (tiny preset): every output exists and agrees with the truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bonecap.io.c3d import read_c3d
+from bonecap.io.imaging import read_dicom_series, read_nifti
+from bonecap.io.mesh import read_mesh
+from bonecap.phantom import PRESETS
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    from bonecap.cli import main
+
+    out = tmp_path_factory.mktemp("phantom")
+    assert main(["phantom", "-o", str(out), "--preset", "tiny", "--seed", "3"]) == 0
+    return out
+
+
+def test_summary_and_layout(phantom):
+    summary = json.loads((phantom / "phantom.json").read_text())
+    assert summary["seed"] == 3 and summary["preset"] == "tiny"
+    assert len(summary["stations"]) == PRESETS["tiny"]["n_stations"]
+    for name in ("README.md", "labels.json", "stations.json", "forearm.json", "skeleton.json", "subject.json",
+                 "marker_binding.yaml"):
+        assert (phantom / "truth" / name).is_file(), name
+
+
+def test_stations_are_dicom_with_bounded_patient_motion(phantom):
+    truth = json.loads((phantom / "truth/stations.json").read_text())["stations"]
+    uids = set()
+    for st in truth:
+        vols = read_dicom_series(phantom / "mri" / st["name"])
+        assert len(vols) == 1
+        v = vols[0]
+        uids.add(v.metadata["series_uid"])
+        assert list(v.shape) == st["shape"]
+        assert np.allclose(v.affine, st["affine_voxel_to_lps"], atol=1e-3)
+        assert 0 < st["shift_mm"] <= 3.0 + 1e-9 and 0 <= st["rotation_deg"] <= 1.0 + 1e-9
+        T = np.array(st["true_to_nominal"])
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+        # the oracle labels sit voxel for voxel on the station's grid
+        lab = read_nifti(phantom / "truth/labels" / f"{st['name']}_oracle.nii.gz")
+        assert lab.shape == v.shape and np.allclose(lab.affine, v.affine, atol=1e-3)
+        assert lab.data.max() > 0
+        # bone voxels are not all bright: cortex is dark, so a threshold cannot read the labels off
+        inside = v.data[lab.data > 0]
+        assert inside.size and np.percentile(inside, 10) < np.percentile(v.data[v.data > 0], 50)
+    assert len(uids) == len(truth)
+
+
+def test_truth_meshes_and_labels_agree(phantom):
+    ids = json.loads((phantom / "truth/labels.json").read_text())["ids"]
+    assert {"femur_r", "tibia_r", "humerus_r", "radius_r", "ulna_r", "hip_r", "l3"} <= set(ids)
+    femur = read_mesh(phantom / "truth/meshes/femur_r.ply")
+    merged = read_nifti(phantom / "truth/labels/merged.nii.gz")
+    # The femur's vertices fall on (or next to) femur-labelled voxels of the merged volume.
+    ijk = np.round(merged.world_to_index(femur.vertices)).astype(int)
+    inside = np.all((ijk >= 0) & (ijk < np.array(merged.shape)), axis=1)
+    near = merged.data[tuple(ijk[inside].T)]
+    assert np.mean(near == ids["femur_r"]) > 0.3
+
+
+def test_forearm_stacks_and_capsules(phantom):
+    fa = json.loads((phantom / "truth/forearm.json").read_text())
+    assert sorted(float(k) for k in fa["poses"]) == [0.0, 99.5, 172.1]
+    ends0 = np.array(fa["poses"]["0"]["radioulnar_axis_lps"])
+    for name, pose in fa["poses"].items():
+        v = read_dicom_series(phantom / pose["folder"])[0]
+        c = np.array(pose["capsule_centres_lps"])
+        assert len(c) == PRESETS["tiny"]["n_capsules"]
+        # capsules lie inside the stack's field of view
+        ijk = v.world_to_index(c)
+        assert np.all((ijk > -1) & (ijk < np.array(v.shape)))
+        ends = np.array(pose["radioulnar_axis_lps"])
+        assert np.linalg.norm(ends - ends0, axis=1).max() < 10.0  # the axis migrates only a little
+    assert fa["poses"]["0"]["capsule_centres_lps"] != fa["poses"]["172.1"]["capsule_centres_lps"]
+
+
+def test_trials_read_back_with_their_truth(phantom):
+    for trial in ("static", "walk", "arm_raise", "pronation", "touch"):
+        t = read_c3d(phantom / "trials" / f"{trial}.c3d")
+        truth = np.load(phantom / "truth" / f"{trial}_poses.npz")
+        F, B = truth["valid"].shape
+        assert t.n_frames == F == len(truth["times"]) and truth["transforms"].shape == (F, B, 4, 4)
+        assert truth["times"][0] == 0.0
+        assert set(truth["markers"]) == set(t.labels)
+        order = [list(truth["markers"]).index(lab) for lab in t.labels]
+        err = t.points - truth["marker_truth"][:, order]
+        # what was written is the truth plus the artefact and noise: within a few cm, never more
+        assert np.nanmax(np.linalg.norm(err, axis=2)) < 30.0
+
+
+def test_bad_stature_is_a_clean_error(tmp_path, cli):
+    res = cli("phantom", "-o", tmp_path / "p", "--preset", "tiny", "--stature", "5")
+    assert res.returncode == 1 and res.stderr.startswith("bonecap: error:")
+    assert not (tmp_path / "p").exists()

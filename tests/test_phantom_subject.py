@@ -1,0 +1,282 @@
+"""The phantom subject is a person, not the template: varied skeleton, a body around it.
+
+Every test here measures something that could fail: shapes that differ beyond
+any affine map, closed meshes, bones inside the fascia inside the skin,
+plausible soft-tissue depths, and arms and legs that a per-slice skin
+segmentation sees as separate components.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from bonecap.errors import InputError
+from bonecap.model import Mesh
+from bonecap.phantom.subject import (
+    BODY_PARAM_RANGES,
+    PhantomSubject,
+    affine_fit_residual,
+    build_subject_skeleton,
+    draw_subject_params,
+    make_subject,
+)
+
+RAJAGOPAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bones" / "opensim" / "models" / \
+    "Rajagopal2016.osim"
+TEMPLATES = ["default", "rajagopal"]
+#: The two seeds compared per template (the first one is the subject measured below).
+SEEDS = {"default": (2, 4), "rajagopal": (0, 1)}
+#: The generic subject is measured at the default preset; the OpenSim one at ``tiny`` (6 mm grid), which
+#: keeps this module's run time down: the generic skeleton itself takes ~20-40 s to build.
+PRESET = {"default": "default", "rajagopal": "tiny"}
+_SUBJECTS: dict[str, PhantomSubject] = {}
+
+
+def _generic(kind: str) -> str:
+    if kind == "default":
+        pytest.importorskip("bonecap.skeleton.generic")
+        return "default"
+    if not RAJAGOPAL.is_file():
+        pytest.skip(f"Rajagopal2016 model not found at {RAJAGOPAL}")
+    return str(RAJAGOPAL)
+
+
+def _subject(kind: str) -> PhantomSubject:
+    """The first seed of a template, built once per session."""
+    if kind not in _SUBJECTS:
+        _SUBJECTS[kind] = make_subject(SEEDS[kind][0], generic=_generic(kind), preset=PRESET[kind])
+    return _SUBJECTS[kind]
+
+
+@pytest.fixture(params=TEMPLATES)
+def subject(request) -> PhantomSubject:
+    return _subject(request.param)
+
+
+# --------------------------------------------------------------------------- #
+# measuring helpers
+# --------------------------------------------------------------------------- #
+def _inside(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """Which points are inside a closed mesh (VTK's enclosed-points test)."""
+    import pyvista as pv
+
+    faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel()
+    surface = pv.PolyData(mesh.vertices, faces)
+    sel = pv.PolyData(np.asarray(points, dtype=float)).select_interior_points(surface, check_surface=False)
+    return np.asarray(sel["selected_points"], dtype=bool)
+
+
+def _section_components(mesh: Mesh, y: float) -> int:
+    """Separate regions of the axial cut Y = y: closed loops not nested in another loop."""
+    seg = trimesh.intersections.mesh_plane(mesh.to_trimesh(), [0, 1, 0], [0, y, 0])
+    if len(seg) == 0:
+        return 0
+    S = seg[:, :, [0, 2]]
+    _, inv = np.unique(np.round(S.reshape(-1, 2), 3), axis=0, return_inverse=True)
+    inv = inv.ravel().reshape(-1, 2)
+    n = int(inv.max()) + 1
+    n_loops, lab = connected_components(coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(n, n)),
+                                        directed=False)
+    seg_lab = lab[inv[:, 0]]
+    outer = 0
+    for c in range(n_loops):
+        p = S[seg_lab == c][0, 0] + 1e-3
+        nested = False
+        for c2 in range(n_loops):
+            if c2 == c:
+                continue
+            a, b = S[seg_lab == c2][:, 0], S[seg_lab == c2][:, 1]
+            cross = (a[:, 1] > p[1]) != (b[:, 1] > p[1])
+            x = a[cross, 0] + (p[1] - a[cross, 1]) * (b[cross, 0] - a[cross, 0]) / (b[cross, 1] - a[cross, 1])
+            if np.sum(x > p[0]) % 2 == 1:
+                nested = True
+                break
+        outer += not nested
+    return outer
+
+
+def _skin_distance(subject: PhantomSubject, points: np.ndarray) -> np.ndarray:
+    """Distance to the skin surface, from a dense point sampling of it (vertices, edge midpoints and
+    face centroids: < 0.3 mm over-estimate at the depths tested, much faster than exact queries)."""
+    v, f = subject.skin.vertices, subject.skin.faces
+    tri = v[f]
+    dense = np.concatenate([v, tri.mean(1), 0.5 * (tri[:, 0] + tri[:, 1]), 0.5 * (tri[:, 1] + tri[:, 2]),
+                            0.5 * (tri[:, 2] + tri[:, 0])])
+    d, _ = cKDTree(dense).query(np.atleast_2d(points))
+    return d
+
+
+def _bone(subject: PhantomSubject, name: str) -> np.ndarray:
+    return subject.skeleton.world_mesh(name).vertices
+
+
+def _skull_name(subject: PhantomSubject) -> str:
+    return "skull" if "skull" in subject.skeleton.bones else "torso"
+
+
+# --------------------------------------------------------------------------- #
+# parameters
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("kind", TEMPLATES)
+def test_params_are_deterministic_and_within_their_ranges(kind):
+    generic = _generic(kind)
+    p0 = draw_subject_params(0, generic=generic)
+    assert p0 == draw_subject_params(0, generic=generic)
+    p1 = draw_subject_params(1, generic=generic)
+    assert p0["skeleton"] != p1["skeleton"] and p0["body"] != p1["body"]
+    for p in (p0, p1):
+        lo, hi = p["ranges"]["stature_mm"]
+        assert lo <= p["stature_mm"] <= hi
+        for group in ("skeleton", "body"):
+            for name, (lo, hi) in p["ranges"][group].items():
+                assert lo - 1e-9 <= p[group][name] <= hi + 1e-9, (group, name, p[group][name], (lo, hi))
+        lengths = {k: v for k, v in p["skeleton"].items() if "scale" in k or k.startswith("length.")}
+        lengths = {k: v for k, v in lengths.items() if "cortical" not in k and "width" not in k}
+        assert lengths and all(0.91 <= v <= 1.09 for v in lengths.values()), lengths
+    # the body parameters cover the stated ranges' names
+    assert set(BODY_PARAM_RANGES) <= set(p0["body"])
+    assert draw_subject_params(0, 1800.0, generic)["stature_mm"] == 1800.0
+
+
+def test_unknown_preset_and_template_are_refused():
+    with pytest.raises(InputError):
+        make_subject(0, preset="huge")
+    with pytest.raises(InputError):
+        build_subject_skeleton(draw_subject_params(0, generic="model.txt"), "model.txt")
+
+
+def test_same_seed_same_subject():
+    a = _subject("rajagopal")
+    b = make_subject(SEEDS["rajagopal"][0], generic=_generic("rajagopal"), preset=PRESET["rajagopal"])
+    assert a.params == b.params
+    np.testing.assert_array_equal(a.skin.vertices, b.skin.vertices)
+    np.testing.assert_array_equal(a.muscle.faces, b.muscle.faces)
+    for name in a.skeleton.bones:
+        np.testing.assert_array_equal(a.skeleton.bones[name].bone_to_world, b.skeleton.bones[name].bone_to_world)
+
+
+# --------------------------------------------------------------------------- #
+# a person, not the template
+# --------------------------------------------------------------------------- #
+def test_affine_fit_residual_is_zero_for_an_affine_image_only():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(800, 3)) * [30.0, 200.0, 25.0]
+    M = np.array([[1.1, 0.05, 0.0], [0.02, 0.93, 0.1], [0.0, -0.04, 1.05]])
+    Q = P @ M.T + [5.0, -20.0, 3.0]
+    assert affine_fit_residual(P, Q) < 1e-6
+    assert affine_fit_residual(P, Q[rng.permutation(len(Q))][:700]) < 2.0       # no correspondence: ICP
+    bent = Q.copy()
+    bent[:, 0] += 2e-4 * (Q[:, 1] - Q[:, 1].mean()) ** 2                       # a bow: not affine
+    assert affine_fit_residual(P, bent) > 1.0
+    # meshes: two triangulations of one (stretched) sphere match through the surfaces, not the vertices
+    ico, uv = trimesh.creation.icosphere(4, radius=30.0), trimesh.creation.uv_sphere(30.0, count=[40, 40])
+    a = Mesh(ico.vertices * [1.0, 4.0, 1.0], ico.faces)
+    b = Mesh(uv.vertices * [1.1, 4.4, 0.9] + 5.0, uv.faces)
+    assert affine_fit_residual(a, b) < 0.3
+    # same vertex count, different numbering (a remeshed bone): no vertex-by-vertex correspondence
+    perm = np.random.default_rng(1).permutation(len(ico.vertices))
+    inv = np.argsort(perm)
+    shuffled = Mesh(a.vertices[perm] * 1.05, inv[a.faces])
+    assert affine_fit_residual(a, shuffled) < 0.05
+
+
+@pytest.mark.parametrize("kind", TEMPLATES)
+def test_two_seeds_differ_beyond_any_affine_map(kind, record_property):
+    generic = _generic(kind)
+    first = _subject(kind)
+    sk0 = copy.deepcopy(first.skeleton)                   # back to its anatomical pose (no MRI abduction)
+    for name, T in first.metadata["anatomical_bone_to_world"].items():
+        sk0.bones[name].bone_to_world = np.asarray(T)
+    seed1 = SEEDS[kind][1]
+    sk = [sk0, build_subject_skeleton(draw_subject_params(seed1, generic=generic), generic)]
+    pelvis = "hip_r" if "hip_r" in sk[0].bones else "pelvis"
+
+    def joint(s, a, b):
+        c = [k for k in s.bones[b].joint_centres if k in s.bones[a].joint_centres][0]
+        return s.bones[b].landmark_in_world(c)
+
+    # segment lengths differ, independently (the thigh/shank ratio changes)
+    thigh = [np.linalg.norm(joint(s, pelvis, "femur_r") - joint(s, "femur_r", "tibia_r")) for s in sk]
+    arm = [np.linalg.norm(s.bones["humerus_r"].bone_to_world[:3, 3] - joint(s, "humerus_r", "ulna_r")) for s in sk]
+    assert abs(thigh[0] / thigh[1] - 1) > 0.01 or abs(arm[0] / arm[1] - 1) > 0.01
+    femur = affine_fit_residual(sk[0].world_mesh("femur_r"), sk[1].world_mesh("femur_r"))
+    chain = affine_fit_residual([sk[0].world_mesh(n) for n in (pelvis, "femur_r", "tibia_r")],
+                                [sk[1].world_mesh(n) for n in (pelvis, "femur_r", "tibia_r")])
+    record_property("femur_affine_residual_mm", femur)
+    record_property("leg_chain_affine_residual_mm", chain)
+    print(f"{kind}: affine-fit residual seed {SEEDS[kind][0]} -> {seed1}: femur {femur:.2f} mm, "
+          f"{pelvis}+femur+tibia {chain:.2f} mm")
+    assert chain > 1.0
+    assert femur > 0.3
+
+
+# --------------------------------------------------------------------------- #
+# the body
+# --------------------------------------------------------------------------- #
+def test_skin_and_fascia_are_closed_and_outward(subject):
+    volumes = []
+    budget = 200_000 if subject.params["preset"] == "default" else 20_000
+    for mesh in (subject.skin, subject.muscle):
+        tm = mesh.to_trimesh()
+        assert tm.is_watertight and tm.is_winding_consistent
+        assert tm.volume > 0
+        assert len(mesh.faces) <= budget
+        volumes.append(tm.volume)
+    # a 1.6-1.8 m adult: 45-110 L; fat is 5-35 % of it
+    assert 45e6 < volumes[0] < 110e6
+    assert 0.65 < volumes[1] / volumes[0] < 0.97
+    assert 0.95 < subject.metadata["height_mm"] / subject.params["stature_mm"] < 1.05
+
+
+def test_bones_inside_fascia_inside_skin(subject):
+    rng = np.random.default_rng(1)
+    bones = subject.bone_world_vertices()
+    sample = bones[rng.choice(len(bones), min(len(bones), 15000), replace=False)]
+    inside = _inside(subject.muscle, sample)
+    assert inside.all(), f"{(~inside).sum()} bone vertices outside the fascia, e.g. {sample[~inside][:3]}"
+    fascia = subject.muscle.vertices[rng.choice(len(subject.muscle.vertices), 5000, replace=False)]
+    assert _inside(subject.skin, fascia).all()
+
+
+def test_soft_tissue_depths_are_plausible(subject):
+    for side in "rl":
+        femur = _bone(subject, f"femur_{side}")
+        y0, y1 = femur[:, 1].min(), femur[:, 1].max()
+        mid = femur[np.abs(femur[:, 1] - 0.5 * (y0 + y1)) < 15]
+        depth = _skin_distance(subject, mid).min()
+        assert 20 <= depth <= 80, f"femur_{side} mid-shaft {depth:.1f} mm under the skin"
+        tibia = _bone(subject, f"tibia_{side}")
+        y0, y1 = tibia[:, 1].min(), tibia[:, 1].max()
+        shaft = tibia[(tibia[:, 1] > y0 + 0.35 * (y1 - y0)) & (tibia[:, 1] < y0 + 0.65 * (y1 - y0))]
+        crest = shaft[np.argmax(shaft[:, 0])]                         # the anterior border
+        assert _skin_distance(subject, crest)[0] <= 15
+    skull = _bone(subject, _skull_name(subject))
+    vertex = skull[np.argmax(skull[:, 1])]
+    assert 3 <= _skin_distance(subject, vertex)[0] <= 12
+
+
+def test_arms_and_legs_are_separate_in_axial_slices(subject):
+    levels = subject.metadata["levels_mm"]
+    assert _section_components(subject.skin, levels["mid_humerus"]) >= 3      # trunk + two arms
+    assert _section_components(subject.skin, levels["mid_thigh"]) >= 2        # two thighs
+    assert subject.params["pose"]["arm_gap_mm_r"] >= 0.8 * subject.params["body"]["arm_gap_mm"]
+    assert subject.params["pose"]["leg_gap_mm"] >= 0.8 * subject.params["body"]["leg_gap_mm"]
+
+
+def test_layers_are_ordered_for_the_renderer(subject):
+    layers = subject.layers()
+    assert [t for _, t in layers[:2]] == ["fat", "muscle"]
+    tissues = [t for _, t in layers[2:]]
+    assert set(tissues) <= {"cortex", "marrow"} and tissues[0] == "cortex"
+    n_bones = sum(b.mesh is not None for b in subject.skeleton.bones.values())
+    assert tissues.count("cortex") == n_bones
+    assert tissues.count("marrow") == sum(b.inner_mesh is not None for b in subject.skeleton.bones.values())
+    assert all(m.frame == subject.skeleton.world == "model" for m, _ in layers)
