@@ -48,9 +48,13 @@ def test_stations_are_dicom_with_bounded_patient_motion(phantom):
         lab = read_nifti(phantom / "truth/labels" / f"{st['name']}_oracle.nii.gz")
         assert lab.shape == v.shape and np.allclose(lab.affine, v.affine, atol=1e-3)
         assert lab.data.max() > 0
-        # bone voxels are not all bright: cortex is dark, so a threshold cannot read the labels off
-        inside = v.data[lab.data > 0]
-        assert inside.size and np.percentile(inside, 10) < np.percentile(v.data[v.data > 0], 50)
+        # no single threshold reads the bones off the image (cortex dark, marrow below fat)
+        bone = lab.data > 0
+        best = 0.0
+        for thr in np.percentile(v.data[v.data > 0], np.arange(5, 100, 5)):
+            for seg in (v.data > thr, (v.data < thr) & (v.data > 0)):
+                best = max(best, 2 * np.sum(seg & bone) / (seg.sum() + bone.sum()))
+        assert best < 0.8, best
     assert len(uids) == len(truth)
 
 
