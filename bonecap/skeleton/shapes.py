@@ -665,6 +665,10 @@ def finish_mesh(verts: np.ndarray, faces: np.ndarray, target_faces: int, smooth_
             for comp in comps:
                 tgt = max(int(target_faces * len(comp.faces) / n), 160)
                 part = comp if len(comp.faces) <= tgt else _decimate_closed(comp, tgt)
+                if part is None and comp.is_watertight and comp.is_winding_consistent:
+                    # A closed piece that no decimator keeps closed stays at full
+                    # resolution: more triangles, but never an open bone.
+                    part = comp
                 if part is None:
                     raise RuntimeError("decimation could not keep the surface closed")
                 parts.append(part)
