@@ -650,7 +650,7 @@ def joint_table(skeleton: Skeleton) -> JointTable:
     for _ in range(3):
         table = _table_from(anatomical, offsets)
         rots = {j.child: j.neutral[None] for j in table.joints.values() if j.name in offsets}
-        T = _forward_kinematics(skeleton, skeleton.bones[root].bone_to_world, rots)[0]
+        T = pose_skeleton(skeleton, skeleton.bones[root].bone_to_world, rots)[0]
         anatomical = Skeleton(bones={n: replace(b, bone_to_world=T[i]) for i, (n, b) in
                                      enumerate(skeleton.bones.items())}, world=skeleton.world,
                               metadata=skeleton.metadata)
@@ -1007,15 +1007,6 @@ def forearm_motion(spec: ForearmSpec, theta_deg: np.ndarray) -> tuple[np.ndarray
     return M, A, B
 
 
-def _forward_kinematics(skeleton: Skeleton, root_to_lab: np.ndarray, rotations: Mapping[str, np.ndarray]
-                        ) -> np.ndarray:
-    """Bone poses ``(F, B, 4, 4)`` by :func:`~bonecap.skeleton.kinematics.pose_skeleton`.
-
-    Frames: ``root_to_lab`` maps the root bone to the lab; rotations are in the parent frames.
-    """
-    return pose_skeleton(skeleton, root_to_lab, dict(rotations))
-
-
 def _apply_subtree_correction(transforms: np.ndarray, index: dict[str, int], bones: list[str],
                               bone: str, target: np.ndarray) -> None:
     """Move ``bone`` to ``target`` (F, 4, 4) and carry its descendants ``bones`` rigidly with it."""
@@ -1031,7 +1022,7 @@ def _pose_core(skeleton: Skeleton, table: JointTable, angles: Mapping[str, np.nd
     """Bone poses (F, B, 4, 4) for angles, forearm twists and a root pose. Bones of the table that
     are not in ``skeleton`` (a sub-skeleton for IK) are skipped."""
     rots = {b: R for b, R in _joint_rotations(table, angles).items() if b in skeleton.bones}
-    T = _forward_kinematics(skeleton, root_to_lab, rots)
+    T = pose_skeleton(skeleton, root_to_lab, rots)
     names = skeleton.names
     index = {n: i for i, n in enumerate(names)}
     kids = _children(skeleton)
