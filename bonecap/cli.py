@@ -65,6 +65,43 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_build_subject(args: argparse.Namespace) -> int:
+    from bonecap.build_subject import run_build_subject
+
+    report = run_build_subject(args.mri, args.out_dir, generic=args.generic, marker_set=args.marker_set,
+                               static=args.static, forearm_poses=args.forearm_poses, seeds=args.seeds,
+                               labels=args.labels, subject_name=args.subject)
+    print(report["summary"])
+    return 0
+
+
+def _cmd_animate(args: argparse.Namespace) -> int:
+    from bonecap.animate import animate, format_report
+
+    if args.max_gap_frames < 0:
+        raise BonecapError(f"--max-gap-frames must be >= 0, got {args.max_gap_frames}")
+    if args.lowpass is not None and args.lowpass <= 0:
+        raise BonecapError(f"--lowpass must be a positive cut-off in Hz, got {args.lowpass}")
+    report = animate(args.subject_dir, args.trials, args.out_dir, solver=args.solver,
+                     forearm=not args.no_forearm_model, max_gap_frames=args.max_gap_frames,
+                     lowpass_hz=args.lowpass, subject_name=args.subject)
+    print(format_report(report))
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from bonecap import evaluate
+
+    if args.what == "motion":
+        result = evaluate.evaluate_motion(args.path, args.truth)
+        text = evaluate.format_motion_table(result)
+    else:
+        result = evaluate.evaluate_subject(args.path, args.truth)
+        text = evaluate.format_subject_table(result)
+    print(json.dumps(result, indent=2, default=float) if args.json else text)
+    return 0
+
+
 def _add_generic(p: argparse.ArgumentParser) -> None:
     p.add_argument("--generic", default="default", metavar="default|MODEL.osim",
                    help="template skeleton: bonecap's embedded one (default) or an OpenSim model")
@@ -119,6 +156,60 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=["tiny", "default"], default="default",
                    help="tiny: a few coarse stations and short trials (for tests); default: the full subject")
     p.set_defaults(handler=_cmd_phantom)
+
+    p = sub.add_parser(
+        "build-subject",
+        help="MRI stations (or a static trial alone) -> personal skeleton with bound markers",
+        description="Build a subject folder: register the MRI stations, segment skin and bones slice by "
+        "slice, mesh them, warp the template onto them (affine + Gaussian RBF), place and bind the markers "
+        "(posed to a static trial when given), fit the forearm model from three forearm stacks. Without "
+        "MRI, scale the template to a static trial.",
+    )
+    p.add_argument("mri", nargs="*", metavar="MRI_PATH",
+                   help="DICOM folders (one per station, or one holding several series), NIfTI or NRRD")
+    p.add_argument("-o", dest="out_dir", required=True, metavar="SUBJECT_DIR", help="output subject folder")
+    _add_generic(p)
+    p.add_argument("--marker-set", metavar="NAME|FILE.yaml",
+                   help="marker set (default: Kojima's set for MRI subjects, the template's otherwise)")
+    p.add_argument("--static", metavar="STATIC.c3d", help="static trial: pose the skeleton and bind the markers")
+    p.add_argument("--forearm-poses", nargs=3, metavar="DIR", help="three forearm stacks (about 0/90/180 deg)")
+    p.add_argument("--seeds", metavar="SEEDS.yaml", help="bone seeds in world mm (override the template's)")
+    p.add_argument("--labels", metavar="LABELMAP", help="your own bone label map (skips contour extraction)")
+    p.add_argument("--subject", metavar="NAME", help="C3D: the subject prefix to keep")
+    p.set_defaults(handler=_cmd_build_subject)
+
+    p = sub.add_parser(
+        "animate",
+        help="C3D trials -> each bone's pose per frame -> animated glTF, poses, angles, residuals",
+        description="Solve every bone's pose in every frame of one or more C3D trials for a subject "
+        "folder, and write an animated glTF, the poses (NPZ), joint angles (CSV), a residual plot and a "
+        "copy of the trial with the joint centres and angles.",
+    )
+    p.add_argument("subject_dir", metavar="SUBJECT_DIR", help="a folder written by build-subject")
+    p.add_argument("trials", nargs="+", metavar="TRIAL.c3d")
+    p.add_argument("-o", dest="out_dir", required=True, metavar="OUT_DIR", help="output folder")
+    p.add_argument("--solver", choices=["lsq", "paper"], default="lsq",
+                   help="lsq: joint-coupled least squares (default); paper: Kojima et al.'s axis rules")
+    p.add_argument("--no-forearm-model", action="store_true",
+                   help="solve radius and ulna from their markers, not the pronation model")
+    p.add_argument("--max-gap-frames", type=int, default=10, metavar="N",
+                   help="interpolate a bone over gaps up to N frames, flag it invalid beyond (default 10)")
+    p.add_argument("--lowpass", type=float, metavar="HZ",
+                   help="zero-lag Butterworth low-pass of the markers before solving (cut-off in Hz)")
+    p.add_argument("--subject", metavar="NAME", help="C3D: the subject prefix to keep")
+    p.set_defaults(handler=_cmd_animate)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="score a subject folder or animated trials against ground truth",
+        description="Compare bonecap's results with ground truth (a phantom's truth folder): "
+        "'subject' scores a subject folder, 'motion' an animate output folder.",
+    )
+    p.add_argument("what", choices=["subject", "motion"])
+    p.add_argument("path", metavar="DIR", help="SUBJECT_DIR or the animate OUT_DIR")
+    p.add_argument("--truth", required=True, metavar="DIR", help="ground truth folder (a phantom's truth/)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(handler=_cmd_evaluate)
     return parser
 
 

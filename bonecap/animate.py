@@ -1,0 +1,336 @@
+"""``bonecap animate``: C3D trials → each bone's pose per frame → glTF, NPZ, CSV, PNG, C3D.
+
+For each trial the subject's bound markers are matched to the trial's labels
+(names and the marker set's aliases), optionally low-pass filtered, and solved
+by the joint-coupled least-squares solver (:mod:`bonecap.motion.lsq`) — the
+radius and ulna by the forearm pronation model (:mod:`bonecap.motion.forearm`)
+unless ``forearm=False``. What the trial lacks is reported, solved where it
+can be (a bone without markers leans on its joints) and flagged invalid where
+it cannot.
+
+Outputs per trial (``<trial>`` is the C3D file's stem)
+------------------------------------------------------
+``<trial>.glb``
+    The subject's bone meshes animated at the trial rate (glTF 2.0, TRS
+    channels; the lab turned Y-up by the root node).
+``<trial>_poses.npz``
+    ``bones`` (names), ``times`` (s from 0), ``first_frame``, ``transforms``
+    (frames x bones x 4 x 4, bone frame → lab, mm, NaN where invalid),
+    ``valid``, ``markers`` (names), ``residuals`` (frames x markers, mm).
+``<trial>_angles.csv``
+    Joint angles in degrees, one row per frame: for every joint, the child's
+    ISB frame relative to its parent's decomposed as an intrinsic Z-X-Y Cardan
+    sequence (Grood & Suntay / ISB: flexion–extension about the parent's Z,
+    ab/adduction about the floating X, axial rotation about the child's Y).
+    Left-side adduction and rotation are negated so that the same anatomical
+    motion has the same sign on both sides (the left ISB frames here are
+    right-handed with Z to the right, as OpenSim's). Angles are absolute (not
+    relative to the static pose), as Plug-in Gait reports them.
+``<trial>_residuals.png``
+    Marker residuals over the trial.
+``<trial>_bonecap.c3d``
+    A copy of the trial with the virtual joint centres (``POINT:MODELED_MARKERS``,
+    named ``<child bone>_jc``) and the joint angles (``POINT:ANGLES``, named
+    ``<child bone>_angles``, degrees) written back, for Nexus and Visual3D users.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from bonecap.errors import DataError, InputError
+from bonecap.io.atomic import atomic_path
+from bonecap.io.c3d import read_c3d, write_c3d
+from bonecap.io.gltf import write_animated_glb
+from bonecap.markers import load_marker_set, match_labels
+from bonecap.model import Motion, Skeleton, Trial
+from bonecap.subject import Subject, read_subject
+
+__all__ = ["trial_markers", "solve_trial", "joint_angles", "joint_centres", "write_outputs", "animate"]
+
+
+def trial_markers(subject: Subject, trial: Trial, *, path: str | os.PathLike | None = None
+                  ) -> tuple[list[str], np.ndarray, list[str]]:
+    """The subject's markers in a trial.
+
+    Returns
+    -------
+    names : list of str
+        Subject marker names found in the trial (and seen at least once).
+    measured : ndarray (F, M, 3)
+        Their positions, lab mm, NaN in gaps.
+    missing : list of str
+        Subject markers the trial lacks or never sees.
+
+    Raises
+    ------
+    DataError
+        The trial has no points, or none of the subject's markers.
+    """
+    if trial.points.shape[1] == 0:
+        raise DataError("the trial holds no marker points", path)
+    try:
+        mset = load_marker_set(subject.marker_set) if subject.marker_set else None
+    except InputError:
+        mset = None
+    if mset is not None:
+        found = match_labels(mset, trial.labels)
+    else:
+        found = {}
+    key = {lab.replace(" ", "").lower(): lab for lab in trial.labels}
+    names, cols, missing = [], [], []
+    for n in subject.markers:
+        lab = found.get(n) or key.get(n.replace(" ", "").lower())
+        if lab is None:
+            missing.append(n)
+            continue
+        j = trial.labels.index(lab)
+        if not np.isfinite(trial.points[:, j]).all(axis=1).any():
+            missing.append(n)
+            continue
+        names.append(n)
+        cols.append(j)
+    if not names:
+        raise DataError(f"none of the subject's {len(subject.markers)} markers is in the trial "
+                        f"(it has {', '.join(trial.labels[:10])}{'...' if len(trial.labels) > 10 else ''})", path)
+    return names, trial.points[:, cols], missing
+
+
+def forearm_models(subject: Subject) -> dict[str, Any]:
+    """The subject's forearm model per side: fitted from its forearm stacks, else the paper's."""
+    from bonecap.motion.forearm import PAPER_MODEL, ForearmModel
+
+    out = {}
+    for side in ("r", "l"):
+        d = (subject.forearm or {}).get(side)
+        out[side] = ForearmModel.from_dict(d) if d else PAPER_MODEL
+    return out
+
+
+def solve_trial(subject: Subject, names: list[str], measured: np.ndarray, *, rate: float,
+                solver: str = "lsq", forearm: bool = True, max_gap_frames: int = 10,
+                lowpass_hz: float | None = None) -> Motion:
+    """Solve one trial's bone poses (lab frame of the trial, mm)."""
+    from bonecap.motion import lsq
+
+    if lowpass_hz:
+        measured = lsq.lowpass_markers(measured, rate, lowpass_hz)
+    _, bones, local = subject.marker_arrays(names)
+    weights = np.array([subject.markers[n].weight for n in names])
+    model = forearm_models(subject) if forearm else None
+    if solver == "lsq":
+        motion = lsq.solve_lsq(subject.skeleton, bones, local, measured, weights=weights,
+                               max_gap_frames=max_gap_frames, forearm=model, marker_labels=names, rate_hz=rate)
+    elif solver == "paper":
+        from bonecap.motion.paper_solver import solve_paper
+
+        motion = solve_paper(subject, names, measured, max_gap_frames=max_gap_frames, forearm=model,
+                             rate_hz=rate)
+    else:
+        raise ValueError(f"solver must be 'lsq' or 'paper', got {solver!r}")
+    motion.marker_labels = list(names)
+    return motion
+
+
+def _joints(skeleton: Skeleton) -> list[tuple[str, str, str, np.ndarray]]:
+    """(child, parent, joint name, centre in child frame) for every coupled joint."""
+    from bonecap.skeleton.kinematics import proximal_joint
+
+    out = []
+    for name, b in skeleton.bones.items():
+        if b.parent is None:
+            continue
+        try:
+            j, _, c = proximal_joint(skeleton, name)
+        except ValueError:
+            continue
+        out.append((name, b.parent, j, c))
+    return out
+
+
+def joint_centres(skeleton: Skeleton, motion: Motion) -> dict[str, np.ndarray]:
+    """Each joint centre in the lab per frame ``(F, 3)``, keyed ``<child bone>_jc``."""
+    index = {n: i for i, n in enumerate(motion.bones)}
+    out = {}
+    for child, _, _, c in _joints(skeleton):
+        if child in index:
+            T = motion.transforms[:, index[child]]
+            out[f"{child}_jc"] = T[:, :3, :3] @ c + T[:, :3, 3]
+    return out
+
+
+def _is_left(name: str) -> bool:
+    return name.endswith("_l") or name.lower().startswith("l_") or name.endswith("_L")
+
+
+def joint_angles(skeleton: Skeleton, motion: Motion) -> dict[str, np.ndarray]:
+    """Joint angles in degrees ``(F, 3)`` = (flexion Z, adduction X, rotation Y), keyed by child bone.
+
+    See the module docstring for the convention.
+    """
+    from scipy.spatial.transform import Rotation
+
+    index = {n: i for i, n in enumerate(motion.bones)}
+    out = {}
+    for child, parent, _, _ in _joints(skeleton):
+        if child not in index or parent not in index:
+            continue
+        Rp = motion.transforms[:, index[parent], :3, :3]
+        Rc = motion.transforms[:, index[child], :3, :3]
+        rel = np.swapaxes(Rp, 1, 2) @ Rc
+        ok = np.isfinite(rel).all(axis=(1, 2))
+        ang = np.full((len(rel), 3), np.nan)
+        if ok.any():
+            # intrinsic Z, then X, then Y (capitals = intrinsic in scipy)
+            ang[ok] = Rotation.from_matrix(rel[ok]).as_euler("ZXY", degrees=True)
+        if _is_left(child):
+            ang[:, 1:] *= -1
+        out[child] = ang
+    return out
+
+
+def _write_angles_csv(path: Path, times: np.ndarray, angles: dict[str, np.ndarray]) -> None:
+    header = ["time_s"] + [f"{b}_{c}_deg" for b in angles for c in ("flexion", "adduction", "rotation")]
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            cols = [times[:, None]] + [a for a in angles.values()]
+            for row in np.hstack(cols):
+                w.writerow(["" if not np.isfinite(v) else f"{v:.4f}" for v in row])
+
+
+def _residual_png(path: Path, motion: Motion, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    res = motion.residuals
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [3, 2]})
+    im = axes[0].imshow(res.T, aspect="auto", interpolation="nearest", cmap="magma",
+                        extent=[motion.times[0], motion.times[-1] if len(motion.times) > 1 else 1, len(res.T), 0],
+                        vmin=0, vmax=max(5.0, float(np.nanpercentile(res, 99)) if np.isfinite(res).any() else 5))
+    axes[0].set_yticks(np.arange(len(motion.marker_labels)) + 0.5)
+    axes[0].set_yticklabels(motion.marker_labels, fontsize=5)
+    axes[0].set_xlabel("time (s)")
+    axes[0].set_title("marker residual (mm); blank = gap")
+    fig.colorbar(im, ax=axes[0])
+    med = np.nanmedian(res, axis=0) if np.isfinite(res).any() else np.zeros(res.shape[1])
+    order = np.argsort(np.nan_to_num(med))[::-1][:25]
+    axes[1].barh([motion.marker_labels[i] for i in order][::-1], np.nan_to_num(med[order])[::-1])
+    axes[1].set_xlabel("median residual (mm)")
+    axes[1].tick_params(axis="y", labelsize=6)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def write_outputs(out_dir: Path, stem: str, subject: Subject, trial: Trial, motion: Motion) -> dict[str, str]:
+    """Write every per-trial output (see the module docstring); returns name → path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sk = subject.skeleton
+    paths = {}
+    meshes = {n: sk.bones[n].mesh for n in motion.bones if sk.bones[n].mesh is not None}
+    paths["glb"] = out_dir / f"{stem}.glb"
+    write_animated_glb(paths["glb"], meshes, motion, lab_up="z")
+    paths["poses"] = out_dir / f"{stem}_poses.npz"
+    with atomic_path(paths["poses"]) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, bones=np.array(motion.bones), times=motion.times,
+                                first_frame=np.int64(motion.first_frame), transforms=motion.transforms,
+                                valid=motion.valid, markers=np.array(motion.marker_labels),
+                                residuals=motion.residuals)
+    angles = joint_angles(sk, motion)
+    paths["angles"] = out_dir / f"{stem}_angles.csv"
+    _write_angles_csv(paths["angles"], motion.times, angles)
+    paths["residuals_png"] = out_dir / f"{stem}_residuals.png"
+    _residual_png(paths["residuals_png"], motion, stem)
+    # The trial written back with what we computed, for Nexus / Visual3D users.
+    other = dict(trial.other_points)
+    groups = dict(trial.other_point_groups)
+    for k, v in joint_centres(sk, motion).items():
+        other[k], groups[k] = v, "MODELED_MARKERS"
+    for k, v in angles.items():
+        other[f"{k}_angles"], groups[f"{k}_angles"] = v, "ANGLES"
+    copy = Trial(trial.labels, trial.points, trial.rate, trial.first_frame, prefixes=trial.prefixes,
+                 other_points=other, other_point_groups=groups, analog_labels=trial.analog_labels,
+                 analogs=trial.analogs, analog_rate=trial.analog_rate, events=trial.events)
+    paths["c3d"] = out_dir / f"{stem}_bonecap.c3d"
+    write_c3d(copy, paths["c3d"])
+    return {k: str(v) for k, v in paths.items()}
+
+
+def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike], out_dir: str | os.PathLike, *,
+            solver: str = "lsq", forearm: bool = True, max_gap_frames: int = 10,
+            lowpass_hz: float | None = None, subject_name: str | None = None) -> dict[str, Any]:
+    """Animate a subject from one or more C3D trials; see the module docstring.
+
+    Every trial is read and matched before anything is solved or written, so
+    a bad trial stops the run with nothing written.
+
+    Returns
+    -------
+    dict
+        Per trial: frames, rate, markers used and missing, bones valid share,
+        residual median, seconds, and the output paths. Also written as
+        ``OUT_DIR/animate_report.json``.
+    """
+    import json
+
+    from bonecap.progress import progress
+
+    if solver not in ("lsq", "paper"):
+        raise ValueError(f"solver must be 'lsq' or 'paper', got {solver!r}")
+    subject = read_subject(subject_dir)
+    loaded = []
+    for path in trials:
+        trial = read_c3d(path, subject=subject_name)
+        names, measured, missing = trial_markers(subject, trial, path=path)
+        loaded.append((Path(path), trial, names, measured, missing))
+    out = Path(out_dir)
+    report: dict[str, Any] = {"subject": str(subject_dir), "solver": solver, "forearm_model": forearm,
+                              "trials": {}}
+    for path, trial, names, measured, missing in progress(loaded, "animate", unit="trial"):
+        t0 = time.perf_counter()
+        motion = solve_trial(subject, names, measured, rate=trial.rate, solver=solver, forearm=forearm,
+                             max_gap_frames=max_gap_frames, lowpass_hz=lowpass_hz)
+        motion.first_frame = int(trial.first_frame)
+        t_solve = time.perf_counter() - t0
+        paths = write_outputs(out, path.stem, subject, trial, motion)
+        report["trials"][path.stem] = {
+            "source": str(path), "frames": trial.n_frames, "rate_hz": trial.rate,
+            "markers_used": len(names), "markers_missing": missing,
+            "bones": len(motion.bones),
+            "valid_share": float(motion.valid.mean()),
+            "residual_median_mm": float(np.nanmedian(motion.residuals)) if np.isfinite(motion.residuals).any()
+            else None,
+            "solve_seconds": round(t_solve, 3),
+            "frames_per_second": round(trial.n_frames / max(t_solve, 1e-9), 1),
+            "outputs": paths,
+        }
+    with atomic_path(out / "animate_report.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    return report
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """A few lines per trial: frames, markers, validity, residuals, where the outputs are."""
+    lines = []
+    for stem, r in report["trials"].items():
+        res = "n/a" if r["residual_median_mm"] is None else f"{r['residual_median_mm']:.2f} mm"
+        lines.append(f"{stem}: {r['frames']} frames at {r['rate_hz']:g} Hz, {r['markers_used']} markers "
+                     f"({len(r['markers_missing'])} missing), {r['bones']} bones, "
+                     f"{100 * r['valid_share']:.1f}% valid, residual median {res}, "
+                     f"{r['frames_per_second']:.0f} frames/s -> {r['outputs']['glb']}")
+        if r["markers_missing"]:
+            lines.append(f"  missing: {', '.join(r['markers_missing'])}")
+    return "\n".join(lines)

@@ -1,0 +1,773 @@
+"""The MRI path of ``build-subject`` (Kojima et al.), stage by stage.
+
+1. **Stations** (:mod:`bonecap.stations`): ordered head to feet, each overlap
+   registered (small rigid motions), intensities normalised, one LPS frame.
+2. **Skin** (:mod:`bonecap.segmentation.skin`): body components per slice.
+3. **Seeds**: the template turned into LPS (supine: model X anterior → −y,
+   Y up → +z, Z right → −x) and scaled and placed on the body by its head-to-
+   sole extent and its centre at hip level — an affine guess, good to ~2 cm,
+   which the slice rules refine. ``--seeds`` overrides per bone.
+4. **Bone contours** (:mod:`bonecap.segmentation.bones`): the cortical-edge
+   rule for long bones, the density-threshold rule for the rest, per slice in
+   native pixels.
+5. **Meshes** (:mod:`bonecap.meshing`): signed-distance interpolation between
+   slices, watertight, smoothed, decimated.
+6. **Personal skeleton** (:mod:`bonecap.skeleton.warp`): the template warped
+   onto the extracted bones (affine + Gaussian RBF); bones the MRI missed come
+   from their neighbours' warps; the skull from the head's skin.
+7. **Markers**: each marker on the personal skin over its landmark; an
+   MRI-visible capsule found near it replaces the guess; with a static trial
+   the skeleton is posed to it and the measured positions are bound.
+8. **Forearm model** from three forearm stacks (``--forearm-poses``).
+
+Everything is in LPS millimetres; the subject's world frame is ``lps``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from bonecap.errors import DataError, InputError
+from bonecap.model import Mesh, Skeleton, Volume
+
+__all__ = ["MODEL_TO_LPS", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
+           "SEGMENTED_BONES"]
+
+#: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
+MODEL_TO_LPS = np.array([[0.0, 0.0, -1.0, 0.0],
+                         [-1.0, 0.0, 0.0, 0.0],
+                         [0.0, 1.0, 0.0, 0.0],
+                         [0.0, 0.0, 0.0, 1.0]])
+
+_LONG = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
+_VERTEBRAE = tuple([f"c{i}" for i in range(1, 8)] + [f"t{i}" for i in range(1, 13)] + [f"l{i}" for i in range(1, 6)])
+#: Bones the slice rules look for; the rest come from the warp (ribs are too
+#: thin for 5 mm slices, hands and feet too small at whole-body resolution).
+SEGMENTED_BONES = tuple([f"{b}_{s}" for b in _LONG for s in "rl"] + ["hip_r", "hip_l", "sacrum"]
+                        + [f"{b}_{s}" for b in ("scapula", "patella") for s in "rl"] + list(_VERTEBRAE))
+
+
+def load_stations(paths: list[str | os.PathLike]) -> list[Volume]:
+    """Read every MRI path (DICOM folder, NIfTI, NRRD) into volumes."""
+    from bonecap.io.imaging import read_volumes
+
+    vols: list[Volume] = []
+    for p in paths:
+        found = read_volumes(p)
+        if not found:
+            raise InputError("no image series found", p)
+        vols.extend(found)
+    return vols
+
+
+def template_to_body(template: Skeleton, body_points_top: float, body_points_bottom: float,
+                     hip_level_centre: np.ndarray) -> np.ndarray:
+    """An affine guess of the template (model frame) in the subject's LPS frame.
+
+    Parameters
+    ----------
+    template : Skeleton
+        In its model frame, feet on Y = 0.
+    body_points_top, body_points_bottom : float
+        LPS z of the vertex and the soles (mm).
+    hip_level_centre : ndarray (3,)
+        LPS centre of the body's cross-section at the template's hip height
+        (after scaling): the hips are set there in x and y.
+
+    Returns
+    -------
+    ndarray (4, 4)
+        model → LPS, a rotation (supine) times a uniform scale plus a shift.
+    """
+    top = max(float(np.max(b.mesh.transformed(b.bone_to_world).vertices[:, 1]))
+              for b in template.bones.values() if b.mesh is not None)
+    bottom = min(float(np.min(b.mesh.transformed(b.bone_to_world).vertices[:, 1]))
+                 for b in template.bones.values() if b.mesh is not None)
+    # skin adds a few mm over the vertex and under the heel
+    s = (body_points_top - body_points_bottom) / (top - bottom + 12.0)
+    A = MODEL_TO_LPS.copy()
+    A[:3, :3] *= s
+    hips = [template.bones[n].landmark_in_world("hip") for n in ("hip_r", "hip_l")
+            if n in template.bones and "hip" in template.bones[n].joint_centres]
+    h = np.mean(hips, axis=0) if hips else np.array([0.0, 0.5 * (top + bottom), 0.0])
+    hz = A[:3, :3] @ h
+    A[:3, 3] = [hip_level_centre[0] - hz[0], hip_level_centre[1] - hz[1], body_points_bottom + 6.0 * s - s * bottom]
+    return A
+
+
+def _body_extent(vols: list[Volume], bodies: list[np.ndarray]) -> tuple[float, float, Callable[[float], np.ndarray]]:
+    """Top and bottom LPS z of the body and a function z -> body centre (x, y) at that level."""
+    zs, centres = [], []
+    for v, m in zip(vols, bodies):
+        k_any = np.flatnonzero(m.any(axis=(0, 1)))
+        for k in k_any:
+            ii, jj = np.nonzero(m[:, :, k])
+            p = v.index_to_world(np.column_stack([ii, jj, np.full(len(ii), k)]).astype(float))
+            zs.append(float(p[:, 2].mean()))
+            centres.append(p.mean(axis=0))
+    if not zs:
+        raise DataError("no body found in any station (is this an MRI of a person?)")
+    zs = np.array(zs)
+    centres = np.array(centres)
+    order = np.argsort(zs)
+    zs, centres = zs[order], centres[order]
+
+    def at(z: float) -> np.ndarray:
+        i = int(np.argmin(np.abs(zs - z)))
+        return centres[i]
+
+    return float(zs.max()), float(zs.min()), at
+
+
+def _covers_whole_body(vols: list[Volume], bodies: list[np.ndarray]) -> bool:
+    """True when the head and the feet are both imaged.
+
+    The extreme slices of the stack (top of the first station, bottom of the
+    last) must hold little body: less than 15 % of the median body area per
+    slice (a vertex or a heel grazing the slice is still "imaged").
+    """
+    areas = [b.sum(axis=(0, 1)) * float(np.prod(v.spacing[:2])) for v, b in zip(vols, bodies)]
+    median = float(np.median(np.concatenate(areas)))
+
+    def extreme(v: Volume, area: np.ndarray, top: bool) -> float:
+        z = [v.index_to_world(np.array([[0, 0, k]], float))[0, 2] for k in (0, v.shape[2] - 1)]
+        k = (0 if z[0] > z[1] else v.shape[2] - 1) if top else (0 if z[0] < z[1] else v.shape[2] - 1)
+        return float(area[k])
+
+    return extreme(vols[0], areas[0], True) < 0.15 * median and extreme(vols[-1], areas[-1], False) < 0.15 * median
+
+
+def _subtree(skeleton: Skeleton, root: str) -> list[str]:
+    out = [root]
+    for name, b in skeleton.bones.items():
+        if b.parent in out and name not in out:
+            out.append(name)
+    return out
+
+
+def _rotate_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, R: np.ndarray) -> None:
+    """Turn ``bones`` (in place) rigidly about ``centre`` by ``R`` (world frame)."""
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = centre - R @ centre
+    for n in bones:
+        skeleton.bones[n].bone_to_world = M @ skeleton.bones[n].bone_to_world
+
+
+def _minimal_rotation(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    u = u / np.linalg.norm(u)
+    v = v / np.linalg.norm(v)
+    axis = np.cross(u, v)
+    s = np.linalg.norm(axis)
+    if s < 1e-9:
+        return np.eye(3)
+    return Rotation.from_rotvec(axis / s * np.arctan2(s, float(u @ v))).as_matrix()
+
+
+class _LimbSections:
+    """Centroids of the body's separate components per slice (LPS mm): the limbs.
+
+    At the level of a joint, the limb it belongs to is a connected component
+    of the slice's body mask apart from the trunk (arms at chest level, legs
+    below the crotch); its centroid is within a centimetre or two of the
+    joint in the transverse plane, which is all a seed needs.
+    """
+
+    def __init__(self, vols: list[Volume], bodies: list[np.ndarray], min_area_mm2: float = 400.0):
+        from scipy import ndimage
+
+        self.z, self.parts = [], []
+        for v, m in zip(vols, bodies):
+            area_px = float(np.prod(v.spacing[:2]))
+            for k in range(m.shape[2]):
+                lab, n = ndimage.label(m[:, :, k])
+                if n == 0:
+                    continue
+                idx = np.arange(1, n + 1)
+                areas = ndimage.sum_labels(np.ones_like(lab), lab, idx) * area_px
+                cents = np.array(ndimage.center_of_mass(m[:, :, k], lab, idx))
+                keep = areas >= min_area_mm2
+                if not keep.any():
+                    continue
+                ijk = np.column_stack([cents[keep], np.full(int(keep.sum()), k)])
+                world = v.index_to_world(ijk.astype(float))
+                self.z.append(float(world[:, 2].mean()))
+                self.parts.append((world, areas[keep]))
+        self.z = np.asarray(self.z)
+
+    def limb_centre(self, z: float, side: str, kind: str, window_mm: float = 12.0) -> np.ndarray | None:
+        """Centre of the arm or leg on ``side`` ('r' = -x in LPS) near height ``z``.
+
+        Components are sorted left to right: an arm is the outermost component
+        of its side when the slice holds three or more; a leg is the
+        innermost non-trunk component of its side below the crotch.
+        """
+        pts = []
+        for i in np.flatnonzero(np.abs(self.z - z) <= window_mm):
+            world, areas = self.parts[i]
+            order = np.argsort(world[:, 0])
+            w = world[order]
+            if kind == "arm":
+                if len(w) < 3:
+                    continue
+                pts.append(w[0] if side == "r" else w[-1])
+            else:
+                # legs: the two largest components when no trunk remains
+                big = np.argsort(areas)[::-1][:2]
+                if len(big) < 2:
+                    continue
+                legs = world[big]
+                legs = legs[np.argsort(legs[:, 0])]
+                pts.append(legs[0] if side == "r" else legs[1])
+        return np.mean(pts, axis=0) if pts else None
+
+
+def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float]:
+    """Turn the template's limbs (in place, LPS) toward the limbs seen in the MRI.
+
+    The MRI pose is not the template's (arms abducted or along the body,
+    legs apart or together): a global affine leaves the elbows and wrists
+    centimetres off. Each long bone is turned about its proximal joint so that
+    its distal joint points at the centre of the limb's cross-section at that
+    joint's height (knee, ankle, elbow, wrist), parent before child.
+
+    Returns
+    -------
+    dict
+        The turn applied per bone (degrees).
+    """
+    chains = [("femur", "knee", "leg"), ("tibia", "ankle", "leg"), ("humerus", "elbow", "arm"),
+              ("ulna", "distal_radioulnar", "arm")]
+    turned = {}
+    for side in "rl":
+        for base, distal, kind in chains:
+            name = f"{base}_{side}"
+            b = skeleton.bones.get(name)
+            if b is None or distal not in b.joint_centres:
+                continue
+            prox = [j for j in b.joint_centres if j != distal]
+            if not prox:
+                continue
+            p = b.landmark_in_world(prox[0])
+            d = b.landmark_in_world(distal)
+            target = sections.limb_centre(float(d[2]), side, kind)
+            if target is None:
+                continue
+            # keep the template's length: turn only, toward the target's direction
+            R = _minimal_rotation(d - p, target - p)
+            ang = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+            if ang > 60:  # a mismatched component (a hand on the thigh): leave the limb alone
+                continue
+            _rotate_about(skeleton, _subtree(skeleton, name), p, R)
+            turned[name] = round(ang, 1)
+    return turned
+
+
+def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES
+               ) -> dict[str, np.ndarray]:
+    """Seed polylines (LPS mm) of the bones to segment, from the aligned template.
+
+    A long bone's seed is the line between its proximal and distal joint
+    centres (its marrow lies along it); another bone's is its joint centres
+    and its mesh centroid, ordered along z.
+    """
+    out = {}
+    for name in bones:
+        b = template.bones.get(name)
+        if b is None:
+            continue
+        pts = [b.landmark_in_world(j) for j in b.joint_centres]
+        if b.mesh is not None and not name.startswith(_LONG):
+            pts.append(b.mesh.transformed(b.bone_to_world).vertices.mean(axis=0))
+        if name.startswith(_LONG) and len(pts) > 2:
+            # the shaft's two ends only: proximal = first, distal = farthest from it
+            d = [np.linalg.norm(p - pts[0]) for p in pts]
+            pts = [pts[0], pts[int(np.argmax(d))]]
+        if not pts:
+            continue
+        p = np.asarray(pts) @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
+        out[name] = p[np.argsort(-p[:, 2])]
+    return out
+
+
+def load_seeds(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Seeds from YAML: ``bone: [[x, y, z], ...]`` in LPS mm (world), a point or a polyline."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such seeds file", path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise InputError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+    seeds = doc.get("seeds", doc) if isinstance(doc, dict) else None
+    if not isinstance(seeds, dict) or not seeds:
+        raise InputError("expected a mapping bone -> [[x, y, z], ...] (LPS mm)", path)
+    out = {}
+    for bone, pts in seeds.items():
+        if bone in ("frame", "units", "description"):
+            continue
+        a = np.asarray(pts, dtype=float)
+        if a.ndim == 1:
+            a = a[None]
+        if a.ndim != 2 or a.shape[1] != 3 or not np.isfinite(a).all():
+            raise InputError(f"seed of {bone!r} must be a point or a list of [x, y, z] in mm", path)
+        out[str(bone)] = a
+    return out
+
+
+def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike = "default",
+                   marker_set: str | os.PathLike | None = None, static: str | os.PathLike | None = None,
+                   forearm_poses: list[str] | None = None, seeds: str | os.PathLike | None = None,
+                   labels: str | os.PathLike | None = None, subject_name: str | None = None):
+    """Build a subject from MRI stations; see the module docstring for the stages.
+
+    Returns
+    -------
+    subject : Subject
+    report : dict
+    qc : callable
+        ``qc(folder)`` writes the QC pictures into ``folder/qc``.
+    """
+    from bonecap.build_subject import bind_static, pose_to_static, static_markers
+    from bonecap.io.c3d import read_c3d
+    from bonecap.markers import check_marker_set, load_marker_set
+    from bonecap.meshing import mesh_from_slices, meshes_from_labels
+    from bonecap.progress import stage_bar
+    from bonecap.segmentation.bones import segment_bones
+    from bonecap.segmentation.skin import segment_body
+    from bonecap.skeleton.template import load_template
+    from bonecap.skeleton.warp import warp_skeleton
+    from bonecap.stations import normalise_intensity, order_stations, register_stations
+    from bonecap.subject import Subject
+
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        timings[name] = round(now - t, 2)
+        t = now
+
+    bar = stage_bar(7, "build-subject")
+    template = load_template(generic)
+    mset = load_marker_set(marker_set or ("kojima_paper" if str(generic) == "default" else generic))
+    check_marker_set(mset, template)
+    static_trial = read_c3d(static, subject=subject_name) if static else None
+    lap("template")
+
+    # 1. stations
+    bar.set_postfix_str("stations")
+    vols = load_stations(mri)
+    try:
+        vols = order_stations(vols)
+        nominal_affines = [v.affine.copy() for v in vols]
+        if len(vols) > 1:
+            vols, reg_report = register_stations(vols)
+            vols, scales = normalise_intensity(vols)
+        else:
+            reg_report, scales = [], np.ones(1)
+    except ValueError as exc:
+        raise DataError(str(exc), mri[0] if len(mri) == 1 else None) from None
+    lap("stations")
+    bar.update()
+
+    # 2. skin
+    bar.set_postfix_str("skin")
+    bodies = [segment_body(v) for v in vols]
+    skin = mesh_from_slices([(b, v.affine) for b, v in zip(bodies, vols)], voxel_mm=4.0,
+                            target_faces=40000)
+    lap("skin")
+    bar.update()
+
+    # 3. seeds from the template roughly aligned to the body
+    bar.set_postfix_str("seeds")
+    top, bottom, centre_at = _body_extent(vols, bodies)
+    posed, align_report = None, {}
+    if seeds is not None:
+        seed_map = load_seeds(seeds)
+    else:
+        if not _covers_whole_body(vols, bodies):
+            raise DataError("the stations do not cover the whole body (head to feet), so the template cannot "
+                            "be placed from the body's extent: give --seeds SEEDS.yaml (bone -> LPS points)",
+                            mri[0])
+        posed, align_report = place_template(template, vols, bodies, top, bottom, centre_at)
+        seed_map = bone_seeds(posed, np.eye(4))
+    lap("seeds")
+    bar.update()
+
+    # 4. bone contours per station
+    bar.set_postfix_str("bone contours")
+    pieces = []
+    ids: dict[str, int] = {}
+    for v, body in zip(vols, bodies):
+        lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False)
+        # one id space across stations
+        remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
+        for name, i in station_ids.items():
+            ids.setdefault(name, len(ids) + 1)
+            remap[i] = ids[name]
+        pieces.append((remap[lab], v.affine))
+    lap("bone contours")
+    bar.update()
+
+    # 5. meshes
+    bar.set_postfix_str("meshes")
+    not_meshed: dict[str, str] = {}
+    # a bone seen in a slice or two (its tip entering the field of view) gives
+    # no usable surface: the warp carries it from its neighbours
+    extracted = meshes_from_labels(pieces, ids, min_slices=3, errors=not_meshed)
+    lap("meshes")
+    bar.update()
+
+    # 6. personal skeleton
+    bar.set_postfix_str("warp")
+    if posed is None:  # user seeds: place the template on the extracted bones' centroids
+        posed = _template_from_targets(template, extracted)
+    targets = _plausible_targets(posed, extracted)
+    personal, warp_report = warp_skeleton(posed, targets)
+    lap("warp")
+    bar.update()
+
+    # 7. markers
+    bar.set_postfix_str("markers")
+    subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
+                      provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
+                                  "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
+                                  "static": str(static) if static else None,
+                                  "seeds": str(seeds) if seeds else "template (affine to the body)"})
+    marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static)
+    lap("markers")
+    bar.update()
+    forearm_report = None
+    if forearm_poses:
+        bar.set_postfix_str("forearm")
+        side = _stack_side(forearm_poses[0], personal)
+        model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side)
+        subject.forearm = {side: model}
+        lap("forearm")
+    bar.close()
+
+    report: dict[str, Any] = {
+        "mode": "mri", "stations": reg_report, "intensity_scales": np.asarray(scales).tolist(),
+        "template_placement": align_report, "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report, **marker_report,
+        "timings_s": timings, "seconds": round(sum(timings.values()), 2),
+    }
+    if forearm_report is not None:
+        report["forearm"] = forearm_report
+    qc_data = {"vols": vols, "pieces": pieces, "ids": ids, "extracted": extracted, "skin": skin, "bodies": bodies}
+
+    def qc(folder: Path) -> None:
+        from bonecap.qc import write_build_qc
+
+        write_build_qc(Path(folder) / "qc", subject, qc_data, report)
+
+    # extracted meshes are part of the result (the evaluation scores them)
+    def qc_and_meshes(folder: Path) -> None:
+        import json
+
+        from bonecap.io.imaging import write_nifti
+        from bonecap.io.mesh import write_mesh
+
+        folder = Path(folder)
+        for name, m in extracted.items():
+            write_mesh(m, folder / "extracted" / f"{name}.ply")
+        # the baseline the warp must beat: the placed template after each bone's affine alone
+        for name, r in (warp_report.get("bones") or {}).items():
+            aff = (warp_report.get("transforms") or {}).get(name)
+            if r.get("source") == "own target" and aff is not None and posed.bones[name].mesh is not None:
+                write_mesh(posed.world_mesh(name).transformed(np.asarray(aff, float), "lps"),
+                           folder / "affine_only" / f"{name}.ply")
+        # the slice-wise labels, on each station's own grid placed in the
+        # registered frame: open them over the DICOM in Slicer / ITK-SNAP, fix,
+        # and pass them back with --labels
+        stations = []
+        for n, ((lab, aff), v) in enumerate(zip(pieces, vols)):
+            rel = f"labels/station_{n + 1}.nii.gz"
+            (folder / "labels").mkdir(parents=True, exist_ok=True)
+            write_nifti(Volume(lab.astype(np.int16), aff), folder / rel)
+            stations.append({"index": n + 1, "labels": rel, "source": str(Path(v.metadata["source_files"][0]).parent) if v.metadata.get("source_files") else "",
+                             "nominal_affine": nominal_affines[n].tolist(), "registered_affine": aff.tolist(),
+                             "shape": list(lab.shape)})
+        (folder / "stations.json").write_text(json.dumps({"ids": ids, "stations": stations}, indent=1))
+        qc(folder)
+
+    return subject, report, qc_and_meshes
+
+
+def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh]) -> dict[str, Mesh]:
+    """Extracted meshes whose size and place fit the placed template bone.
+
+    A wild one (two bones merged, a bone mistaken for its neighbour) would
+    drag the warp: it is left out and the bone comes from its neighbours.
+    """
+    out = {}
+    for name, m in extracted.items():
+        b = template.bones.get(name)
+        if b is None or b.mesh is None or len(m.faces) == 0:
+            continue
+        wt = template.world_mesh(name)
+        v_t = abs(wt.to_trimesh().volume)
+        v_e = abs(m.to_trimesh().volume)
+        size = np.linalg.norm(np.ptp(wt.vertices, axis=0))
+        shift = np.linalg.norm(wt.vertices.mean(0) - m.vertices.mean(0))
+        if 0.4 < v_e / max(v_t, 1e-9) < 2.5 and shift < 0.5 * size + 20.0:
+            out[name] = m
+    return out
+
+
+def _template_from_targets(template: Skeleton, extracted: dict[str, Mesh]) -> Skeleton:
+    """The template placed on the extracted bones by a similarity fit of their centroids (LPS)."""
+    from bonecap.scaling import similarity_fit
+
+    names = [n for n in extracted if n in template.bones and template.bones[n].mesh is not None]
+    if len(names) < 3:
+        # too few bones to fit a similarity: orientation from the supine convention only
+        c_e = np.mean([extracted[n].vertices.mean(0) for n in names], axis=0) if names else np.zeros(3)
+        c_t = MODEL_TO_LPS[:3, :3] @ np.mean([template.world_mesh(n).vertices.mean(0) for n in names] or
+                                             [np.zeros(3)], axis=0)
+        T = MODEL_TO_LPS.copy()
+        T[:3, 3] = c_e - c_t
+        return _moved(template, T, 1.0)
+    src = np.array([template.world_mesh(n).vertices.mean(0) for n in names])
+    dst = np.array([extracted[n].vertices.mean(0) for n in names])
+    s, T = similarity_fit(src, dst)
+    T[:3, :3] /= s
+    return _moved(template, T, s)
+
+
+def _moved(template: Skeleton, T: np.ndarray, s: float) -> Skeleton:
+    """The template scaled by ``s`` (about its own origin) then moved rigidly by ``T`` into LPS."""
+    from bonecap.scaling import scale_skeleton
+
+    scaled = scale_skeleton(template, {}, default=s)
+    root = scaled.bones[scaled.names[0]].bone_to_world[:3, 3]
+    # scale_skeleton keeps the root's origin: compensate so that p -> T(s p)
+    shift = np.eye(4)
+    shift[:3, 3] = (s - 1.0) * root
+    M = T @ shift
+    for b in scaled.bones.values():
+        b.bone_to_world = M @ b.bone_to_world
+    scaled.world = "lps"
+    return scaled
+
+
+def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarray], top: float, bottom: float,
+                   centre_at) -> tuple[Skeleton, dict[str, Any]]:
+    """The template in LPS, scaled to the body's length, centred, and its limbs turned toward the MRI's.
+
+    Returns the placed skeleton and a report (scale, shift, per-limb turns).
+    """
+    a0 = template_to_body(template, top, bottom, np.zeros(3))
+    hip = np.mean([template.bones[n].landmark_in_world("hip") for n in ("hip_r", "hip_l")], axis=0)
+    hz = (a0[:3, :3] @ hip + a0[:3, 3])[2]
+    A = template_to_body(template, top, bottom, centre_at(hz))
+    s = float(np.cbrt(abs(np.linalg.det(A[:3, :3]))))
+    T = A.copy()
+    T[:3, :3] /= s
+    posed = _moved(template, T, s)
+    sections = _LimbSections(vols, bodies)
+    # centre the legs in their thighs (the trunk's centroid is not the hips')
+    offsets = []
+    for side in "rl":
+        f = posed.bones.get(f"femur_{side}")
+        if f is None:
+            continue
+        mid = 0.5 * (f.landmark_in_world("hip") + f.landmark_in_world("knee"))
+        c = sections.limb_centre(float(mid[2]), side, "leg")
+        if c is not None:
+            offsets.append(c - mid)
+    shift = np.zeros(3)
+    if offsets:
+        shift[:2] = np.mean(offsets, axis=0)[:2]
+        M = np.eye(4)
+        M[:3, 3] = shift
+        for b in posed.bones.values():
+            b.bone_to_world = M @ b.bone_to_world
+    turned = repose_limbs(posed, sections)
+    return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned}
+
+
+def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> dict[str, Any]:
+    """Markers on the personal skin over their landmarks; capsules where found; the static trial binds."""
+    from bonecap.build_subject import bind_static, joint_consistent, pose_to_static, static_markers
+    from bonecap.markers import place_markers
+    from bonecap.subject import MarkerBinding
+
+    sk = subject.skeleton
+    # optional markers (SACR in Plug-in Gait) are bound only if the static trial has them
+    in_static = set()
+    if static_trial is not None:
+        from bonecap.markers import match_labels
+
+        in_static = set(match_labels(mset, static_trial.labels))
+    names = [n for n, m in mset.markers.items() if not m.virtual and (not m.optional or n in in_static)]
+    placed = place_markers(mset, sk, names)
+    placed = _onto_skin(placed, subject.skin, sk, mset)
+    report: dict[str, Any] = {}
+    # capsules
+    try:
+        from bonecap.segmentation.capsules import find_capsules, match_capsules
+    except ImportError:  # pragma: no cover - the module ships with bonecap
+        find_capsules = None
+    capsule_names: dict[str, np.ndarray] = {}
+    if find_capsules is not None:
+        found = [find_capsules(v, body_mask=b)[0] for v, b in zip(vols, bodies)]
+        centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
+        if len(centres):
+            capsule_names = match_capsules(centres, placed, max_distance_mm=25.0)
+        report["capsules_found"] = int(len(centres))
+        report["capsules_matched"] = sorted(capsule_names)
+    for n in names:
+        m = mset.markers[n]
+        p = capsule_names.get(n, placed[n])
+        T = sk.bones[m.bone].bone_to_world
+        subject.markers[n] = MarkerBinding(n, m.bone, T[:3, :3].T @ (p - T[:3, 3]),
+                                           "capsule" if n in capsule_names else "placed")
+    if static_trial is not None:
+        snames, lab = static_markers(static_trial, mset, path=static_path)
+        bones = [subject.markers[n].bone for n in snames]
+        local = np.array([subject.markers[n].local for n in snames])
+        poses = joint_consistent(sk, pose_to_static(sk, bones, local, lab))
+        bound = bind_static(sk, snames, bones, lab, poses)
+        moved = {n: float(np.linalg.norm(bound[n].local - subject.markers[n].local)) for n in bound}
+        subject.markers.update(bound)
+        report["static_binding_shift_mm"] = {k: round(v, 2) for k, v in moved.items()}
+        report["markers_missing_in_static"] = [n for n in names if n not in bound]
+        subject.static = {"trial": str(static_path), "markers_lab": {n: p for n, p in zip(snames, lab)},
+                          "bone_to_lab": {b: poses[i] for i, b in enumerate(sk.names)
+                                          if np.isfinite(poses[i]).all()}}
+    report["markers_bound"] = len(subject.markers)
+    return report
+
+
+def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, mset, marker_radius_mm: float = 7.0
+               ) -> dict[str, np.ndarray]:
+    """Move each placed marker to the personal skin plus the marker's radius, along the landmark's normal.
+
+    The marker set's ``offset_mm`` is a typical tissue depth; with MRI we
+    measure the real one: the ray from the landmark through the guessed
+    marker position meets the skin, and the marker sits one radius beyond.
+    """
+    if skin is None:
+        return placed
+    import trimesh
+
+    tm = trimesh.Trimesh(skin.vertices, skin.faces, process=False)
+    names = list(placed)
+    origins, dirs = [], []
+    for n in names:
+        m = mset.markers[n]
+        b = sk.bones[m.bone]
+        lm = (b.landmarks.get(m.landmark) if m.landmark in b.landmarks else b.joint_centres.get(m.landmark)) \
+            if m.landmark else None
+        o = b.bone_to_world[:3, :3] @ lm + b.bone_to_world[:3, 3] if lm is not None else placed[n]
+        d = placed[n] - o
+        nd = np.linalg.norm(d)
+        origins.append(o)
+        dirs.append(d / nd if nd > 1e-6 else np.array([0.0, 0.0, 1.0]))
+    origins, dirs = np.array(origins), np.array(dirs)
+    out = dict(placed)
+    try:
+        locs, ray_idx, _ = tm.ray.intersects_location(origins, dirs, multiple_hits=False)
+    except Exception:  # noqa: BLE001 - no ray engine: keep the manual's depths
+        return placed
+    for loc, r in zip(locs, ray_idx):
+        depth = np.linalg.norm(loc - origins[r])
+        if depth < 80.0:  # a hit beyond 8 cm is another body part (the other leg, an arm)
+            out[names[r]] = loc + dirs[r] * marker_radius_mm
+    return out
+
+
+def _landmark(b, name: str, T: np.ndarray) -> np.ndarray | None:
+    p = b.landmarks.get(name, b.joint_centres.get(name))
+    return None if p is None else T[:3, :3] @ p + T[:3, 3]
+
+
+def _stack_side(path, personal: Skeleton) -> str:
+    """Which forearm a stack shows: right when its centre lies on the body's right (LPS -x)."""
+    v = load_stations([path])[0]
+    centre = v.index_to_world(np.array([(np.array(v.shape) - 1) / 2.0]))[0]
+    mid = personal.bones[personal.names[0]].bone_to_world[:3, 3]
+    return "r" if centre[0] < mid[0] else "l"
+
+
+def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
+                            ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
+
+    For each stack: the ulna and radius are segmented with the cortical rule
+    (seeds: the personal bones' axes), meshed, and the personal bones are
+    rigidly registered onto them (ICP), which gives each bone's pose in that
+    stack; the styloids then follow their bones and the epicondyles stay with
+    the humerus. The twist of each stack is measured from those four points
+    (:func:`bonecap.motion.forearm.forearm_twist`) — the paper measured 0°,
+    99.5° and 172.1°, not the nominal 0/90/180 — and the quadratics are fitted
+    against the measured twists. Capsules found in the stacks are reported.
+
+    Returns
+    -------
+    model : dict
+        :meth:`ForearmModel.to_dict` plus ``side``.
+    report : dict
+        Per stack: measured twist, ICP residuals, capsule centres (LPS).
+    """
+    from bonecap.meshing import mesh_from_slices
+    from bonecap.motion.forearm import fit_forearm_model, forearm_twist
+    from bonecap.segmentation.bones import segment_bones
+    from bonecap.segmentation.capsules import find_capsules
+    from bonecap.segmentation.skin import segment_body
+    from bonecap.skeleton.warp import rigid_icp
+
+    if len(dirs) != 3:
+        raise InputError(f"--forearm-poses takes three stacks, got {len(dirs)}")
+    ulna_n, radius_n, hum_n = f"ulna_{side}", f"radius_{side}", f"humerus_{side}"
+    for n in (ulna_n, radius_n, hum_n):
+        if n not in personal.bones or personal.bones[n].mesh is None:
+            raise DataError(f"the personal skeleton has no {n} mesh to register into the forearm stacks")
+    U, Rb, H = (personal.bones[n] for n in (ulna_n, radius_n, hum_n))
+    lat = _landmark(H, "lateral_epicondyle", H.bone_to_world)
+    med = _landmark(H, "medial_epicondyle", H.bone_to_world)
+    poses, report = [], {"stacks": {}, "capsules": {}}
+    for d in dirs:
+        vols = load_stations([d])
+        v = max(vols, key=lambda x: x.data.size)
+        body = segment_body(v)
+        seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in ("elbow", "distal_radioulnar")
+                              if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
+        lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+        Ts = {}
+        for n, bone in ((ulna_n, U), (radius_n, Rb)):
+            if n not in ids or not (lab == ids[n]).any():
+                raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
+            target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
+            pts = bone.mesh.transformed(bone.bone_to_world).vertices
+            T, res = rigid_icp(pts, target)
+            Ts[n] = T @ bone.bone_to_world
+            report["stacks"].setdefault(str(d), {})[f"{n}_icp_mm"] = float(np.mean(res))
+        wrist = np.array([_landmark(Rb, "radial_styloid", Ts[radius_n]), _landmark(U, "ulnar_styloid", Ts[ulna_n])])
+        poses.append((Ts[ulna_n], Ts[radius_n], wrist, np.array([lat, med])))
+        centres, _ = find_capsules(v, body_mask=body)
+        report["capsules"][Path(d).name] = centres.tolist()
+    wr = np.array([p[2] for p in poses])
+    el = np.array([p[3] for p in poses])
+    raw = forearm_twist(wr[:, 0], wr[:, 1], el[:, 0], el[:, 1], side=side)
+    theta = raw - raw[int(np.argmin(np.abs(raw)))]
+    for (d, _), t in zip(report["stacks"].items(), theta):
+        report["stacks"][d]["twist_deg"] = float(t)
+    model = fit_forearm_model(theta, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), wr, el,
+                              side=side)
+    out = model.to_dict()
+    out["side"] = side
+    out["fitted_from"] = [str(d) for d in dirs]
+    report["twists_deg"] = theta.tolist()
+    return out, report

@@ -1,0 +1,366 @@
+"""``bonecap build-subject``: from MRI (or a static trial alone) to a subject folder.
+
+Two paths lead to the same :class:`~bonecap.subject.Subject`:
+
+- **MRI** (Kojima et al.): stations registered into one frame, skin and bone
+  contours slice by slice, meshes, the template warped onto them by an affine
+  + Gaussian RBF transform, markers placed on the skin and bound to bones
+  (:func:`build_from_mri`).
+- **No MRI** (what labs without a scanner do, and what the real Vicon trials
+  need): the template scaled bone by bone to a static trial
+  (:func:`build_from_static`).
+
+Either way, with a static trial the skeleton is posed to it and the markers'
+measured positions are bound to their bones: markers are never exactly where
+the manual says, which is the problem the paper set out to solve.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bonecap.errors import DataError, InputError
+from bonecap.io.c3d import read_c3d
+from bonecap.markers import MarkerSet, check_marker_set, load_marker_set, match_labels, place_markers
+from bonecap.model import Skeleton, Trial
+from bonecap.scaling import (fit_scale_factors, load_scaling_groups, scale_factors_from_pairs, scale_skeleton,
+                              similarity_fit)
+from bonecap.skeleton.template import load_template, template_marker_set
+from bonecap.subject import MarkerBinding, Subject
+
+__all__ = ["static_markers", "pose_to_static", "bind_static", "build_from_static"]
+
+
+def static_markers(trial: Trial, marker_set: MarkerSet, *, path: str | os.PathLike | None = None
+                   ) -> tuple[list[str], np.ndarray]:
+    """The marker set's markers in a static trial, averaged over its frames.
+
+    The median over frames (not the mean) so that a few mislabelled or
+    swapped frames do not move a marker.
+
+    Returns
+    -------
+    names : list of str
+        Marker-set names found in the trial and seen in at least one frame.
+    positions : ndarray (M, 3)
+        Lab frame of the trial, mm.
+
+    Raises
+    ------
+    DataError
+        Fewer than 6 of the set's markers are in the trial.
+    """
+    found = match_labels(marker_set, trial.labels)
+    names, cols = [], []
+    for name in marker_set.markers:
+        if name in found and not marker_set.markers[name].virtual:
+            j = trial.labels.index(found[name])
+            if np.isfinite(trial.points[:, j]).all(axis=1).any():
+                names.append(name)
+                cols.append(j)
+    if len(names) < 6:
+        raise DataError(f"only {len(names)} markers of the set {marker_set.name!r} are seen in the static trial "
+                        f"(labels: {', '.join(trial.labels[:12])}{'...' if len(trial.labels) > 12 else ''})",
+                        path)
+    pos = np.nanmedian(trial.points[:, cols], axis=0)
+    return names, pos
+
+
+def _local(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return (p - T[:3, 3]) @ T[:3, :3]
+
+
+def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np.ndarray,
+                   static_lab: np.ndarray) -> np.ndarray:
+    """Pose every bone to one frame of static markers with the joint-coupled solver.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    marker_bones : list of str
+    marker_local : ndarray (M, 3)
+        Markers in their bones' frames (mm).
+    static_lab : ndarray (M, 3)
+        The same markers measured in the lab (mm).
+
+    Returns
+    -------
+    ndarray (B, 4, 4)
+        ``bone_to_lab`` of every bone of ``skeleton.names`` (NaN where unsolved).
+    """
+    from bonecap.motion.lsq import solve_lsq
+
+    motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], max_gap_frames=0)
+    return motion.transforms[0]
+
+
+def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tibia", "humerus")) -> np.ndarray:
+    """Give the long bones of a static pose the reference twist relative to their parents.
+
+    A femur, tibia or humerus carries two markers in Plug-in Gait (one of them
+    on a wand or a soft shaft): with its joint centres they fix its direction
+    well but its twist about the long axis poorly, and a template whose
+    proportions differ from the subject's can turn it by tens of degrees.
+    A static trial is taken standing in the anatomical posture, so the twist
+    is taken as the template's (neutral) one relative to the parent, and only
+    the direction comes from the solve. Plug-in Gait's static calibration
+    rests on the same assumption. Bones are processed parent first, so a
+    tibia's neutral twist is relative to its corrected femur.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    poses : ndarray (B, 4, 4)
+        ``bone_to_lab`` of the static (parent-first order of ``skeleton.names``).
+
+    Returns
+    -------
+    ndarray (B, 4, 4)
+        The corrected poses (a copy).
+    """
+    from bonecap.skeleton.kinematics import proximal_joint
+
+    out = poses.copy()
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    for n in skeleton.names:
+        b = skeleton.bones[n]
+        if not n.startswith(prefixes) or b.parent is None:
+            continue
+        Tp, Tc = out[idx[b.parent]], out[idx[n]]
+        if not (np.isfinite(Tp).all() and np.isfinite(Tc).all()):
+            continue
+        try:
+            jname, _, prox = proximal_joint(skeleton, n)
+        except ValueError:
+            continue
+        others = [c for k, c in b.joint_centres.items() if k != jname]
+        if not others:
+            continue
+        dist = max(others, key=lambda c: np.linalg.norm(c - prox))
+        rel_ref = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
+        Rn = (Tp @ rel_ref)[:3, :3]
+        a_n, a_s = Rn @ (dist - prox), Tc[:3, :3] @ (dist - prox)
+        from bonecap.build_mri import _minimal_rotation
+
+        R = _minimal_rotation(a_n, a_s) @ Rn
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = Tc[:3, :3] @ prox + Tc[:3, 3] - R @ prox
+        out[idx[n]] = T
+    return out
+
+
+def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
+    """The solved static rebuilt as a chain of ball joints, so that every joint centre coincides.
+
+    A coupled least-squares solve leaves small gaps at the joints where the
+    template's proportions and the markers disagree. Binding markers to such
+    a pose would bake the gaps in, and every later solve would fight them
+    (a two-marker shank can flip to the wrong side of its axis doing so).
+    Each bone keeps its solved orientation; its position follows its parent
+    through the shared joint centre (:func:`bonecap.skeleton.kinematics.pose_skeleton`).
+    Unsolved bones keep their reference orientation relative to the parent.
+    """
+    from bonecap.skeleton.kinematics import pose_skeleton, proximal_joint
+
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    rots = {}
+    # orientations of the rebuilt chain, parent first
+    new_R: dict[str, np.ndarray] = {}
+    for n in skeleton.names:
+        b = skeleton.bones[n]
+        if b.parent is None:
+            new_R[n] = poses[idx[n]][:3, :3] if np.isfinite(poses[idx[n]]).all() else b.bone_to_world[:3, :3]
+            continue
+        rest = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)[:3, :3]
+        P = new_R[b.parent]
+        C = poses[idx[n]][:3, :3]
+        try:
+            proximal_joint(skeleton, n)
+            shared = True
+        except ValueError:
+            shared = False
+        if shared and np.isfinite(C).all():
+            R = P.T @ C @ rest.T
+            rots[n] = R
+            new_R[n] = P @ R @ rest
+        else:
+            new_R[n] = P @ rest
+    root = skeleton.names[0]
+    root_pose = poses[idx[root]] if np.isfinite(poses[idx[root]]).all() else skeleton.bones[root].bone_to_world
+    return pose_skeleton(skeleton, root_pose, rots)[0]
+
+
+def bind_static(skeleton: Skeleton, names: list[str], marker_bones: list[str], static_lab: np.ndarray,
+                bone_to_lab: np.ndarray) -> dict[str, MarkerBinding]:
+    """Bind measured static markers to their bones (positions in the bone frames)."""
+    index = {n: i for i, n in enumerate(skeleton.names)}
+    out = {}
+    for n, b, p in zip(names, marker_bones, static_lab):
+        T = bone_to_lab[index[b]]
+        if np.isfinite(T).all() and np.isfinite(p).all():
+            out[n] = MarkerBinding(n, b, _local(T, p), "static")
+    return out
+
+
+def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike = "default",
+                      marker_set: str | os.PathLike | None = None, subject_name: str | None = None,
+                      iterations: int = 3) -> tuple[Subject, dict[str, Any]]:
+    """Scale the template to a static trial and bind its markers (no MRI).
+
+    Parameters
+    ----------
+    static : path-like
+        The static C3D trial (any lab frame and units; read with POINT:UNITS).
+    generic : str or path-like
+        ``"default"`` or an OpenSim ``.osim`` model.
+    marker_set : str or path-like, optional
+        Marker set name or YAML; default: the template's (Plug-in Gait for the
+        embedded skeleton, the model's MarkerSet for an OpenSim model).
+    subject_name : str, optional
+        C3D subject prefix to keep.
+    iterations : int
+        Rounds of pose → per-bone scale (3 settle to < 0.5 %).
+
+    Returns
+    -------
+    subject : Subject
+        Skeleton in the template's world frame (``model``), scaled per bone;
+        markers bound from the static trial (``source: static``).
+    report : dict
+        Scale factors, the static fit's marker residuals (mm), timings.
+    """
+    t0 = time.perf_counter()
+    template = load_template(generic)
+    mset = load_marker_set(marker_set) if marker_set else template_marker_set(generic)
+    check_marker_set(mset, template)
+    trial = read_c3d(static, subject=subject_name)
+    names, lab = static_markers(trial, mset, path=static)
+    bones = [mset.markers[n].bone for n in names]
+
+    # A global similarity first: the lab's scale and the subject's stature.
+    placed0 = place_markers(mset, template, names)
+    s0, _ = similarity_fit(np.array([placed0[n] for n in names]), lab)
+    scales = {b: s0 for b in template.names}
+    history = []
+    groups = load_scaling_groups(mset)
+    group_factors: dict[str, float] = {}
+    if groups:
+        # the marker set says which distances scale which bones (OpenSim's way)
+        scales, group_factors = scale_factors_from_pairs(template, groups, placed0, dict(zip(names, lab)),
+                                                         default=s0)
+    else:
+        # no table (an OpenSim MarkerSet): fit the factors, pose by pose
+        for _ in range(max(1, iterations)):
+            sk = scale_skeleton(template, scales)
+            placed = place_markers(mset, sk, names)
+            local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
+            poses = pose_to_static(sk, bones, local, lab)
+            index = {n: i for i, n in enumerate(sk.names)}
+            measured_local = np.array([_local(poses[index[b]], p) if np.isfinite(poses[index[b]]).all()
+                                       else np.full(3, np.nan) for b, p in zip(bones, lab)])
+            # a bone whose markers the pose cannot explain (a wrong label, a
+            # marker that slipped) must not rescale it: only well-fitted markers vote
+            err = np.linalg.norm(measured_local - local, axis=1)
+            trusted = np.where((err < 40.0)[:, None], measured_local, np.nan)
+            ratio = fit_scale_factors(sk, bones, local, trusted, fallback=1.0, limits=(0.85, 1.18))
+            scales = {b: float(np.clip(scales[b] * ratio[b], 0.75 * s0, 1.3 * s0)) for b in template.names}
+            history.append(float(np.max(np.abs(np.log(list(ratio.values()))))))
+    sk = scale_skeleton(template, scales)
+    placed = place_markers(mset, sk, names)
+    local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
+    poses = joint_consistent(sk, neutral_twist(sk, pose_to_static(sk, bones, local, lab)))
+    markers = bind_static(sk, names, bones, lab, poses)
+    # residual of the placed (template) markers at the static pose: how far the
+    # manual's positions are from where the markers really were
+    index = {n: i for i, n in enumerate(sk.names)}
+    resid = {}
+    for (n, b), p_local, p_lab in zip(zip(names, bones), local, lab):
+        T = poses[index[b]]
+        resid[n] = float(np.linalg.norm(T[:3, :3] @ p_local + T[:3, 3] - p_lab))
+    missing = [n for n in mset.physical if n not in names]
+    static_doc = {"trial": str(static), "markers_lab": {n: p for n, p in zip(names, lab)},
+                  "bone_to_lab": {b: poses[i] for i, b in enumerate(sk.names) if np.isfinite(poses[i]).all()}}
+    subject = Subject(static=static_doc,
+        skeleton=sk, markers=markers, marker_set=mset.name,
+        provenance={"command": "build-subject", "mode": "static", "generic": str(generic),
+                    "marker_set": mset.source or mset.name, "static": str(static),
+                    "subject_prefix": subject_name, "scale_iterations": iterations},
+    )
+    report = {
+        "mode": "static",
+        "markers_bound": len(markers), "markers_missing_in_static": missing,
+        "global_scale": s0,
+        "scale_factors": {b: round(float(v), 4) for b, v in scales.items()},
+        "scale_change_per_iteration": history,
+        "scale_groups": {g: round(f, 4) for g, f in group_factors.items()},
+        "placed_vs_measured_mm": {k: round(v, 2) for k, v in resid.items()},
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    return subject, report
+
+
+def _summary(report: dict[str, Any], out_dir: Path) -> str:
+    lines = [f"subject ({report['mode']}): {report.get('bones', '?')} bones, "
+             f"{report.get('markers_bound', 0)} markers bound -> {out_dir}/subject.yaml"]
+    if report.get("markers_missing_in_static"):
+        lines.append(f"  not in the static trial: {', '.join(report['markers_missing_in_static'])}")
+    if "placed_vs_measured_mm" in report and report["placed_vs_measured_mm"]:
+        v = np.array(list(report["placed_vs_measured_mm"].values()))
+        lines.append(f"  markers vs their manual placement: median {np.median(v):.1f} mm, max {v.max():.1f} mm")
+    if "scale_factors" in report:
+        s = np.array(list(report["scale_factors"].values()))
+        lines.append(f"  bone scale factors {s.min():.3f} .. {s.max():.3f}")
+    lines.append(f"  took {report.get('seconds', 0):.1f} s")
+    return "\n".join(lines)
+
+
+def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, generic: str | os.PathLike = "default",
+                      marker_set: str | os.PathLike | None = None, static: str | os.PathLike | None = None,
+                      forearm_poses: list[str] | None = None, seeds: str | os.PathLike | None = None,
+                      labels: str | os.PathLike | None = None, subject_name: str | None = None
+                      ) -> dict[str, Any]:
+    """The ``build-subject`` command: build and write a subject folder.
+
+    The folder is assembled in a temporary folder beside ``out_dir`` and
+    renamed at the end, so a failure leaves no half-written subject.
+
+    Returns
+    -------
+    dict
+        The report (also ``out_dir/report.json``) with a ``summary`` text.
+    """
+    import json
+
+    from bonecap.io.atomic import atomic_path
+    from bonecap.subject import _plain, write_subject
+
+    out_dir = Path(out_dir)
+    if not mri and not labels:
+        if static is None:
+            raise InputError("build-subject needs MRI_PATH(s), --labels, or --static STATIC.c3d "
+                             "(the template scaled to a static trial)", out_dir)
+        if forearm_poses:
+            raise InputError("--forearm-poses needs the MRI stations too", out_dir)
+        subject, report = build_from_static(static, generic=generic, marker_set=marker_set,
+                                            subject_name=subject_name)
+        qc = None
+    else:
+        from bonecap.build_mri import build_from_mri
+
+        subject, report, qc = build_from_mri(mri or [], generic=generic, marker_set=marker_set, static=static,
+                                             forearm_poses=forearm_poses, seeds=seeds, labels=labels,
+                                             subject_name=subject_name)
+    report["bones"] = len(subject.skeleton.bones)
+    with atomic_path(out_dir, directory=True) as tmp:
+        write_subject(subject, tmp, extra={"report_file": "report.json"})
+        if qc is not None:
+            qc(tmp)
+        (tmp / "report.json").write_text(json.dumps(_plain(report), indent=2, default=str))
+    report["summary"] = _summary(report, out_dir)
+    return report

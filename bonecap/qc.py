@@ -1,0 +1,121 @@
+"""Quality-control pictures of build-subject, written next to the subject.
+
+- ``qc/contours_<station>.png``: a mosaic of slices of each station with the
+  skin (cyan) and every bone label's contour (one colour per bone) drawn over
+  the image — the first thing to look at when a bone comes out wrong.
+- ``qc/personal_skeleton_front.png`` / ``_side.png``: the personal skeleton.
+- ``qc/warp_residuals.png``: per bone, the warp's residual at its feature
+  points and the extracted-vs-personal fit.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bonecap.io.atomic import atomic_path
+from bonecap.model import Bone, Skeleton
+
+__all__ = ["contour_mosaic", "write_build_qc"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.ndarray | None = None, *,
+                   n_slices: int = 12, title: str = "", pixel_aspect: float = 1.0) -> Path:
+    """Write a mosaic of ``n_slices`` evenly spaced axial slices with label contours.
+
+    Parameters
+    ----------
+    image : ndarray [i, j, k]
+    labels : ndarray [i, j, k] of int
+    body : ndarray [i, j, k] of bool, optional
+    """
+    plt = _plt()
+    K = image.shape[2]
+    ks = np.unique(np.linspace(0, K - 1, min(n_slices, K)).round().astype(int))
+    cols = 4
+    rows = int(np.ceil(len(ks) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(cols * 3.2, rows * 3.2 * image.shape[0] / max(image.shape[1], 1)))
+    axes = np.atleast_1d(axes).ravel()
+    cmap = plt.get_cmap("tab20")
+    vmax = float(np.percentile(image, 99.5)) or 1.0
+    for ax, k in zip(axes, ks):
+        # rows = j (posterior down), columns = i: the radiological view
+        ax.imshow(image[:, :, k].T, cmap="gray", vmin=0, vmax=vmax, interpolation="nearest",
+                  aspect=pixel_aspect)
+        if body is not None and body[:, :, k].any():
+            ax.contour(body[:, :, k].T.astype(float), levels=[0.5], colors="cyan", linewidths=0.5)
+        for lab in np.unique(labels[:, :, k]):
+            if lab == 0:
+                continue
+            ax.contour((labels[:, :, k] == lab).T.astype(float), levels=[0.5], colors=[cmap(int(lab) % 20)],
+                       linewidths=0.7)
+        ax.set_title(f"slice {k}", fontsize=7)
+        ax.axis("off")
+    for ax in axes[len(ks):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path
+
+
+def _in_model_frame(skeleton: Skeleton) -> Skeleton:
+    """An LPS skeleton turned into the template frame (Y up) for the standard views."""
+    if skeleton.world != "lps":
+        return skeleton
+    from bonecap.build_mri import MODEL_TO_LPS
+
+    L2M = np.linalg.inv(MODEL_TO_LPS)
+    bones = {n: Bone(n, b.parent, b.mesh, L2M @ b.bone_to_world) for n, b in skeleton.bones.items()}
+    return Skeleton(bones, world="model")
+
+
+def write_build_qc(qc_dir: Path, subject, data: dict[str, Any], report: dict[str, Any]) -> list[Path]:
+    """Write every QC picture of a build-subject run (see the module docstring)."""
+    from bonecap.skeleton.generic import render_skeleton_views
+
+    qc_dir = Path(qc_dir)
+    qc_dir.mkdir(parents=True, exist_ok=True)
+    out = []
+    for n, (v, (lab, _aff)) in enumerate(zip(data["vols"], data["pieces"])):
+        name = v.metadata.get("series_description") or v.metadata.get("name") or f"station_{n + 1}"
+        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in str(name))
+        sp = v.spacing
+        out.append(contour_mosaic(qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab,
+                                  data.get("bodies", [None] * len(data["vols"]))[n] if data.get("bodies") else None,
+                                  title=f"{name}: bone contours (colours) and skin (cyan)",
+                                  pixel_aspect=float(sp[0] / sp[1])))
+    out += render_skeleton_views(_in_model_frame(subject.skeleton), qc_dir, prefix="personal_skeleton")
+    warp = report.get("warp") or {}
+    per_bone = warp.get("bones", warp) if isinstance(warp, dict) else {}
+    rows = [(b, r) for b, r in per_bone.items() if isinstance(r, dict) and r.get("residual_mean_mm") is not None]
+    if rows:
+        plt = _plt()
+        fig, ax = plt.subplots(figsize=(8, max(3, 0.18 * len(rows))))
+        names = [b for b, _ in rows]
+        ax.barh(names, [r["residual_mean_mm"] for _, r in rows], label="mean")
+        ax.barh(names, [r.get("residual_max_mm") or np.nan for _, r in rows], alpha=0.3, label="max")
+        ax.set_xlabel("warp residual at the feature points (mm)")
+        ax.tick_params(axis="y", labelsize=6)
+        ax.legend()
+        fig.tight_layout()
+        p = qc_dir / "warp_residuals.png"
+        with atomic_path(p) as tmp:
+            fig.savefig(tmp, dpi=100, format="png")
+        plt.close(fig)
+        out.append(p)
+    return out

@@ -1,0 +1,944 @@
+"""The personal skeleton: the template warped onto a subject's bones (issue #5, stage 5).
+
+Kojima et al. warped a generic skeleton onto the bones extracted from a
+person's MRI with an affine transform plus Gaussian radial basis functions
+(their *RBFT*). Here, per bone: a rigid ICP, then an affine ICP, then
+corresponding surface samples (feature points, both ways so the warp cannot
+fold the template onto part of the target), and an RBF interpolant
+``scipy.interpolate.RBFInterpolator(kernel="gaussian", degree=1)`` whose
+degree-1 polynomial is the affine part. The fit is refined coarse to fine
+(narrower kernels, correspondences recomputed from the current warp). Its
+residual at the feature points is checked (a kernel too wide for the points
+makes the linear system numerically singular and the fit silently wrong) and
+so is the Jacobian determinant (no folding).
+
+Public API
+----------
+- :func:`rigid_icp` / :func:`affine_icp` ``(source_points, target_mesh, init=None, ...) -> (T, residuals)``
+- :func:`feature_points` ``(template_mesh, target_mesh, n=1000, ...) -> (src, dst)``
+- :class:`Warp`, :func:`fit_warp` ``(src, dst, *, kernel_width_mm=40, smoothing=1e-3, ...) -> Warp``
+- :func:`initial_transform` ``(template, targets) -> 4x4``
+- :func:`warp_skeleton` ``(template, targets, *, init=None, ...) -> (Skeleton, report)``
+
+Frames: the template's bones are in its world (``"model"``: X anterior, Y up,
+Z right, mm); the targets (and the result) in the subject's world, normally
+**LPS** mm. Every transform here maps template world -> target world.
+
+References
+----------
+- Kojima et al. (the design's source paper): affine + Gaussian RBF transform
+  (RBFT) of a generic skeleton onto MRI bones.
+- Besl PJ, McKay ND. A method for registration of 3-D shapes. *IEEE PAMI*
+  14(2):239-256, 1992 (ICP).
+- Chen Y, Medioni G. Object modelling by registration of multiple range
+  images. *Image Vis Comput* 10(3):145-155, 1992 (point-to-plane ICP).
+- Umeyama S. Least-squares estimation of transformation parameters between
+  two point patterns. *IEEE PAMI* 13(4):376-380, 1991.
+- Fornefett M, Rohr K, Stiehl HS. Radial basis functions with compact support
+  for elastic registration of medical images. *Image Vis Comput* 19:87-96,
+  2001 (RBF warps, Jacobian determinant as the folding check).
+- Higham NJ. Computing the polar decomposition -- with applications. *SIAM J
+  Sci Stat Comput* 7(4):1160-1174, 1986 (the rigid part of an affine).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
+
+from bonecap.model import Bone, Mesh, Skeleton
+
+__all__ = ["rigid_icp", "affine_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
+           "warp_skeleton"]
+
+
+# --------------------------------------------------------------------------- #
+# small geometry
+# --------------------------------------------------------------------------- #
+def _apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def _check_points(name: str, p) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} holds NaN or infinite coordinates")
+    return p
+
+
+def _check_mesh(name: str, m) -> Mesh:
+    if not isinstance(m, Mesh):
+        raise ValueError(f"{name} must be a bonecap.model.Mesh, got {type(m).__name__}")
+    if len(m.faces) == 0:
+        raise ValueError(f"{name} has no faces")
+    return m
+
+
+def _kabsch(A: np.ndarray, B: np.ndarray, scale: bool = False) -> np.ndarray:
+    """Least-squares rigid (or similarity) 4x4 with ``B ~ T A`` (Umeyama 1991)."""
+    ca, cb = A.mean(0), B.mean(0)
+    H = (A - ca).T @ (B - cb)
+    U, S, Vt = np.linalg.svd(H)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ D @ U.T
+    s = float((S * np.diag(D)).sum() / max(((A - ca) ** 2).sum(), 1e-12)) if scale else 1.0
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = cb - s * R @ ca
+    return T
+
+
+def _fit_affine(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Least-squares affine 4x4 with ``B ~ T A``."""
+    Ah = np.hstack([A, np.ones((len(A), 1))])
+    M, *_ = np.linalg.lstsq(Ah, B, rcond=None)
+    T = np.eye(4)
+    T[:3, :] = M.T
+    return T
+
+
+def _polar_rotation(L: np.ndarray) -> np.ndarray:
+    """The rotation of the polar decomposition ``L = R S`` (Higham 1986), via the SVD."""
+    U, _, Vt = np.linalg.svd(L)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:  # a reflection would flip the bone frame's handedness
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+class _Surface:
+    """A target mesh with what the ICPs and correspondences ask of it (built once per mesh)."""
+
+    def __init__(self, mesh: Mesh):
+        import pyvista as pv
+        import trimesh
+
+        self.mesh = mesh
+        self.tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        self.normals = np.asarray(self.tm.face_normals)
+        self.poly = pv.PolyData(mesh.vertices, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+        # dense samples for nearest-neighbour ICP: vertices plus face centres (spacing ~ the edge length)
+        self.samples = np.concatenate([mesh.vertices, self.tm.triangles_center])
+        self.sample_normals = np.concatenate([np.asarray(self.tm.vertex_normals), self.normals])
+        self.tree = cKDTree(self.samples)
+
+    def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest points on the surface and their face ids."""
+        cells, pts = self.poly.find_closest_cell(p, return_closest_point=True)
+        return np.asarray(pts, dtype=float).reshape(-1, 3), np.asarray(cells, dtype=np.int64).reshape(-1)
+
+
+def _as_surface(m) -> _Surface:
+    return m if isinstance(m, _Surface) else _Surface(_check_mesh("target_mesh", m))
+
+
+def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point: float,
+                rot_offset: np.ndarray | None = None, prior: float = 0.0, axis: np.ndarray | None = None
+                ) -> np.ndarray:
+    """One linearised ICP step: the update U (4x4) minimising
+    ``sum (n . (U m - q))^2 + w_point^2 sum |U m - q|^2`` (point-to-plane, Chen & Medioni 1992, with a little
+    point-to-point that fixes the directions a plane leaves free)."""
+    N = len(m)
+    if kind == "rigid":
+        # U m ~ m + w x m + t: unknowns (w, t)
+        Jp = np.hstack([np.cross(m, n), n])                                   # (N, 6)
+        rp = (n * (q - m)).sum(1)
+        skew = np.zeros((N, 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = m[:, 2], -m[:, 1], m[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -m[:, 2], m[:, 1], -m[:, 0]
+        Jq = np.concatenate([skew, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=2).reshape(3 * N, 6)
+        J = np.vstack([Jp, w_point * Jq])
+        r = np.concatenate([rp, w_point * (q - m).ravel()])
+        if prior > 0 and rot_offset is not None and axis is not None:
+            # a weak pull of the spin about the long axis back to the initial pose: it decides only what the
+            # surfaces leave free (a thin straight bone's spin); swings stay free
+            JtJ = J.T @ J
+            mu = prior * np.trace(JtJ[:3, :3]) / 3.0
+            J = np.vstack([J, np.sqrt(mu) * np.concatenate([axis, np.zeros(3)])[None]])
+            r = np.concatenate([r, [-np.sqrt(mu) * float(axis @ rot_offset)]])
+        x = np.linalg.solve(J.T @ J, J.T @ r)  # normal equations: 6 unknowns, well conditioned by the point term
+        from scipy.spatial.transform import Rotation
+
+        U = np.eye(4)
+        U[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+        U[:3, 3] = x[3:]
+        return U
+    # affine: U m = W [m, 1], unknowns W (3x4) row-major
+    phi = np.hstack([m, np.ones((N, 1))])
+    Jp = (n[:, :, None] * phi[:, None, :]).reshape(N, 12)
+    rp = (n * q).sum(1)
+    Jq = (np.eye(3)[None, :, :, None] * phi[:, None, None, :]).reshape(3 * N, 12)
+    J = np.vstack([Jp, w_point * Jq])
+    r = np.concatenate([rp, w_point * q.ravel()])
+    W = np.linalg.solve(J.T @ J, J.T @ r).reshape(3, 4)
+    U = np.eye(4)
+    U[:3, :] = W
+    return U
+
+
+def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iterations: int, tol_mm: float,
+         trim: float, prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4) if init is None else np.asarray(init, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"init must be a 4x4 transform, got shape {T.shape}")
+    R0 = _polar_rotation(T[:3, :3])
+    # the source's long axis (its principal direction), for the spin prior
+    axis = np.linalg.eigh(np.cov((source - source.mean(0)).T))[1][:, -1]
+    if kind == "rigid":
+        # a similarity or affine start (e.g. initial_transform) gives its rotation: a rigid result stays rigid
+        T = T.copy()
+        T[:3, :3] = R0
+    sel = np.arange(len(target.samples))
+    if len(sel) > 3000:  # a subset is enough for the target -> source direction
+        sel = sel[np.linspace(0, len(sel) - 1, 3000).astype(int)]
+    tgt, tgt_n = target.samples[sel], target.sample_normals[sel]
+    prev = np.inf
+    for _ in range(int(iterations)):
+        moved = _apply(T, source)
+        d1, i1 = target.tree.query(moved)
+        d2, i2 = cKDTree(moved).query(tgt)
+        # both directions: source -> target alone lets a bigger target swallow the source, target -> source
+        # alone lets a partial target pull the whole source onto itself; far pairs are dropped (trimmed ICP)
+        k1 = d1 <= max(np.quantile(d1, trim), 1e-9)
+        k2 = d2 <= max(np.quantile(d2, trim), 1e-9)
+        m = np.concatenate([moved[k1], moved[i2[k2]]])
+        q = np.concatenate([target.samples[i1[k1]], tgt[k2]])
+        n = np.concatenate([target.sample_normals[i1[k1]], tgt_n[k2]])
+        off = Rotation.from_matrix(_polar_rotation(T[:3, :3]) @ R0.T).as_rotvec() if prior > 0 else None
+        T = _solve_step(m, q, n, kind, 0.2, off, prior, _polar_rotation(T[:3, :3]) @ axis) @ T
+        err = 0.5 * (d1[k1].mean() + d2[k2].mean())
+        if abs(prev - err) < tol_mm:
+            break
+        prev = err
+    moved = _apply(T, source)
+    res = np.linalg.norm(target.closest(moved)[0] - moved, axis=1)
+    return T, res
+
+
+def rigid_icp(source_points, target_mesh, init=None, *, iterations: int = 60, tol_mm: float = 1e-3,
+              trim: float = 0.9, rotation_prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid ICP of points onto a mesh, correspondences both ways, point-to-plane (Besl & McKay 1992;
+    Chen & Medioni 1992).
+
+    Parameters
+    ----------
+    source_points : ndarray, shape (N, 3)
+        Points in the source (template) world, mm.
+    target_mesh : Mesh
+        Surface in the target world (e.g. LPS), mm.
+    init : ndarray (4, 4), optional
+        Initial source -> target transform (identity by default; of a
+        similarity or affine only the polar rotation and the translation are
+        used). ICP is local: it needs the bone within ~20 deg and a fraction of
+        its size.
+    iterations : int
+        Maximum number of iterations.
+    tol_mm : float
+        Stop when the mean matched distance changes less than this.
+    trim : float
+        Fraction of the matches kept each way (the nearest ones).
+    rotation_prior : float
+        Weight (relative to the mean rotational stiffness of the matches) of a
+        pull of the spin about the source's long axis (its principal direction)
+        back to ``init``'s. 0: none. A small value (1e-3) only decides what the
+        surfaces leave free -- the spin of a thin, straight bone such as the
+        fibula -- and leaves its swing to the surfaces.
+
+    Returns
+    -------
+    T : ndarray (4, 4)
+        ``source_to_target``, a rotation and translation.
+    residuals : ndarray (N,)
+        Distance (mm) of each moved source point to the target surface.
+
+    References
+    ----------
+    Besl & McKay 1992; Chen & Medioni 1992 (point-to-plane steps, with a 0.2-weighted
+    point-to-point term for the directions a plane leaves free).
+    """
+    src = _check_points("source_points", source_points)
+    if rotation_prior < 0:
+        raise ValueError(f"rotation_prior must be >= 0, got {rotation_prior}")
+    return _icp(src, _as_surface(target_mesh), init, "rigid", iterations, tol_mm, trim, rotation_prior)
+
+
+def affine_icp(source_points, target_mesh, init=None, *, iterations: int = 60, tol_mm: float = 1e-3,
+               trim: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """Affine ICP of points onto a mesh, correspondences both ways.
+
+    Same parameters as :func:`rigid_icp`; start it from the rigid result (an
+    affine ICP from far away can shear the bone onto the wrong part).
+
+    Returns
+    -------
+    T : ndarray (4, 4)
+        ``source_to_target``, a general affine map.
+    residuals : ndarray (N,)
+        Distance (mm) of each moved source point to the target surface.
+    """
+    src = _check_points("source_points", source_points)
+    return _icp(src, _as_surface(target_mesh), init, "affine", iterations, tol_mm, trim)
+
+
+# --------------------------------------------------------------------------- #
+# feature points
+# --------------------------------------------------------------------------- #
+def _barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    import trimesh
+
+    return trimesh.triangles.points_to_barycentric(tri, p)
+
+
+def _even_samples(tm, n: int, seed: int):
+    """About ``n`` evenly spread surface samples (Poisson-disk rejection) and their faces."""
+    import logging
+
+    import trimesh
+
+    # rejection leaves somewhat fewer than asked: that is fine here, and not worth trimesh's warning
+    logger = logging.getLogger("trimesh.sample")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        return trimesh.sample.sample_surface_even(tm, n, seed=seed)
+    finally:
+        logger.setLevel(level)
+
+
+def _correspondences(moving: Mesh, target: _Surface, n: int, max_angle_deg: float, seed: int,
+                     moving_surface: _Surface | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs (face of ``moving``, barycentric coordinates, point on ``target``), both ways.
+
+    Half the pairs start on ``moving`` (evenly spread samples -> their closest
+    target point), half on the target (-> closest point of ``moving``); pairs
+    whose normals disagree by more than ``max_angle_deg`` (the other side of a
+    thin bone) or whose distance is an outlier are dropped, and the moving-side
+    points are thinned to a minimum spacing so no two nearly coincident source
+    points ask for different targets (which makes an interpolant fold).
+    """
+    ms = moving_surface if moving_surface is not None else _Surface(moving)
+    half = max(int(n) // 2, 4)
+    p_m, f_m = _even_samples(ms.tm, half, seed)
+    q_m, c_m = target.closest(p_m)
+    p_t, f_t = _even_samples(target.tm, half, seed + 1)
+    q_t, c_t = ms.closest(p_t)
+    faces = np.concatenate([np.asarray(f_m, dtype=np.int64), c_t])
+    src = np.concatenate([p_m, q_t])
+    dst = np.concatenate([q_m, p_t])
+    n_src = ms.normals[faces]
+    n_dst = np.concatenate([target.normals[c_m], target.normals[np.asarray(f_t, dtype=np.int64)]])
+    keep = (n_src * n_dst).sum(1) >= np.cos(np.deg2rad(max_angle_deg))
+    d = np.linalg.norm(dst - src, axis=1)
+    if keep.any():
+        med = np.median(d[keep])
+        keep &= d <= max(3.0 * med, med + 5.0)
+    faces, src, dst = faces[keep], src[keep], dst[keep]
+    # thin the source side: one pair per cell of about half the mean sample spacing
+    spacing = 0.5 * np.sqrt(ms.tm.area / max(half, 1))
+    _, first = np.unique(np.floor(src / spacing).astype(np.int64), axis=0, return_index=True)
+    first = np.sort(first)
+    faces, src, dst = faces[first], src[first], dst[first]
+    bary = _barycentric(ms.tm.triangles[faces], src)
+    return faces, bary, dst
+
+
+def feature_points(template_mesh: Mesh, target_mesh: Mesh, n: int = 1000, *, max_angle_deg: float = 60.0,
+                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Corresponding surface points of two roughly aligned meshes (the warp's feature points).
+
+    Call it after ICP: both meshes in the same frame (the target's, e.g. LPS).
+    Half the pairs are evenly spread samples of the template with their
+    closest target point, half are target samples with their closest template
+    point (symmetric: the template cannot fold onto part of the target, and
+    target parts the template misses still pull it). Pairs whose surface
+    normals differ by more than ``max_angle_deg`` or whose distance is an
+    outlier are dropped; template points are thinned so that none are nearly
+    coincident.
+
+    Parameters
+    ----------
+    template_mesh, target_mesh : Mesh
+        In one frame, mm.
+    n : int
+        Number of samples drawn (about half each way); the result has at most
+        this many pairs. Keep it <= 1-2 thousand per bone (RBF memory).
+    max_angle_deg : float
+        Normal agreement for a pair to count.
+    seed : int
+        Seed of the even surface sampling (deterministic).
+
+    Returns
+    -------
+    src, dst : ndarray (M, 3)
+        Points on the template and their counterparts on the target.
+    """
+    _check_mesh("template_mesh", template_mesh)
+    if int(n) < 8:
+        raise ValueError(f"n must be at least 8 feature points, got {n}")
+    _, _, dst = _corr = _correspondences(template_mesh, _as_surface(target_mesh), n, max_angle_deg, seed)
+    faces, bary, _ = _corr
+    tri = template_mesh.vertices[template_mesh.faces[faces]]
+    src = np.einsum("nk,nkd->nd", bary, tri)
+    return src, dst
+
+
+# --------------------------------------------------------------------------- #
+# the warp
+# --------------------------------------------------------------------------- #
+@dataclass
+class Warp:
+    """An affine + Gaussian RBF map ``x -> rbf(pre(x))`` (Kojima et al.'s RBFT).
+
+    Attributes
+    ----------
+    rbf : scipy.interpolate.RBFInterpolator
+        Gaussian kernel, degree-1 polynomial (the affine part).
+    pre : ndarray (4, 4)
+        An affine applied before the RBF (e.g. the affine ICP); identity by default.
+    kernel_width_mm : float
+        Gaussian width ``w``: the kernel is ``exp(-(r / w)^2)`` (``epsilon = 1 / w``).
+    smoothing : float
+    src, dst : ndarray (M, 3)
+        Feature points (``src`` after ``pre``) and their targets.
+    residual_mm : ndarray (M,)
+        ``|warp(src) - dst|`` at the feature points: near 0 for an interpolating
+        fit (``smoothing = 0``). A large residual means the fit failed (a kernel
+        too wide for the points' spread: the system is numerically singular).
+    """
+
+    rbf: RBFInterpolator
+    pre: np.ndarray
+    kernel_width_mm: float
+    smoothing: float
+    src: np.ndarray
+    dst: np.ndarray
+    residual_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __call__(self, points) -> np.ndarray:
+        """Map points ``(N, 3)`` of the source frame to the target frame."""
+        p = _check_points("points", points)
+        if len(p) == 0:
+            return p.copy()
+        return self.rbf(_apply(self.pre, p))
+
+    def jacobian(self, points) -> np.ndarray:
+        """The 3x3 Jacobian of the map at each point, ``(N, 3) -> (N, 3, 3)``.
+
+        Analytic: ``d/dx exp(-eps^2 |x - y|^2) = -2 eps^2 (x - y) exp(...)``
+        plus the affine part, chained with ``pre``.
+        """
+        p = _apply(self.pre, _check_points("points", points))
+        r = self.rbf
+        y, eps, C = r.y, float(r.epsilon), r._coeffs
+        n_c = len(y)
+        powers = np.asarray(r.powers)
+        J = np.zeros((len(p), 3, 3))
+        # the polynomial part: monomials of (x - shift) / scale of degree <= 1
+        for m, pw in enumerate(powers):
+            if pw.sum() == 1:
+                d = int(np.argmax(pw))
+                J[:, :, d] += C[n_c + m] / r._scale[d]
+        # sum_i c_i (x - y_i)_d K_i = x_d (K C) - K (y_d C): matrix products only
+        CY = np.hstack([C[:n_c]] + [y[:, d:d + 1] * C[:n_c] for d in range(3)])   # (N, 12)
+        yy = (y ** 2).sum(1)
+        for s0 in range(0, len(p), 4000):
+            x = p[s0:s0 + 4000]
+            r2 = np.maximum((x ** 2).sum(1)[:, None] + yy[None, :] - 2.0 * x @ y.T, 0.0)
+            KC = np.exp(-(eps ** 2) * r2) @ CY                                     # (n, 12)
+            for d in range(3):
+                J[s0:s0 + 4000, :, d] += (-2.0 * eps ** 2) * (x[:, d:d + 1] * KC[:, :3] - KC[:, 3 * d + 3:3 * d + 6])
+        return J @ self.pre[:3, :3]
+
+    def min_jacobian_det(self, points) -> float:
+        """Smallest Jacobian determinant over the points: > 0 means the warp does not fold there."""
+        p = _check_points("points", points)
+        if len(p) == 0:
+            raise ValueError("min_jacobian_det needs at least one point")
+        return float(np.linalg.det(self.jacobian(p)).min())
+
+
+def fit_warp(src, dst, *, kernel_width_mm: float = 40.0, smoothing: float = 1e-3, pre=None,
+             max_residual_mm: float | None = 1.0) -> Warp:
+    """Fit the affine + Gaussian RBF warp that takes feature points ``src`` to ``dst``.
+
+    Parameters
+    ----------
+    src, dst : ndarray (M, 3)
+        Feature points (in the frame after ``pre``) and their targets, mm;
+        at least 4 not coplanar (the affine part).
+    kernel_width_mm : float
+        Width ``w`` of the Gaussian ``exp(-(r / w)^2)``; ``epsilon = 1 / w``.
+        It should be a few times the feature-point spacing and well below the
+        bone's size: too wide and the kernel matrix is numerically singular
+        (the fit fails silently -- caught by ``max_residual_mm``).
+    smoothing : float
+        Added to the kernel matrix's diagonal (0: interpolate exactly); a
+        little regularises noisy correspondences.
+    pre : ndarray (4, 4), optional
+        An affine applied to input points before the RBF (stored in the Warp).
+    max_residual_mm : float or None
+        Raise if the 95th percentile of the residual at the feature points
+        exceeds this; ``None`` skips the check (the residual is still stored).
+
+    Returns
+    -------
+    Warp
+
+    Raises
+    ------
+    ValueError
+        On mismatched or too few points, a non-positive width or negative
+        smoothing, or when the residual check fails.
+
+    References
+    ----------
+    Kojima et al. (RBFT); scipy ``RBFInterpolator`` (Gaussian kernel needs
+    ``epsilon``; ``degree=1`` adds the affine part).
+    """
+    src = _check_points("src", src)
+    dst = _check_points("dst", dst)
+    if src.shape != dst.shape:
+        raise ValueError(f"src and dst must have the same shape, got {src.shape} and {dst.shape}")
+    if len(src) < 4:
+        raise ValueError(f"fit_warp needs at least 4 feature points (the affine part), got {len(src)}")
+    if not kernel_width_mm > 0:
+        raise ValueError(f"kernel_width_mm must be positive, got {kernel_width_mm}")
+    if smoothing < 0:
+        raise ValueError(f"smoothing must be >= 0, got {smoothing}")
+    pre = np.eye(4) if pre is None else np.asarray(pre, dtype=float)
+    if pre.shape != (4, 4):
+        raise ValueError(f"pre must be a 4x4 transform, got shape {pre.shape}")
+    rbf = RBFInterpolator(src, dst, kernel="gaussian", epsilon=1.0 / float(kernel_width_mm), degree=1,
+                          smoothing=float(smoothing))
+    res = np.linalg.norm(rbf(src) - dst, axis=1)
+    warp = Warp(rbf, pre, float(kernel_width_mm), float(smoothing), src, dst, res)
+    if max_residual_mm is not None:
+        p95 = float(np.percentile(res, 95))
+        if not p95 <= max_residual_mm:
+            extent = float(np.ptp(src, axis=0).max())
+            raise ValueError(
+                f"the RBF warp misses its feature points (95th percentile residual {p95:.2f} mm > "
+                f"{max_residual_mm} mm): a kernel {kernel_width_mm:g} mm wide is too wide for {len(src)} "
+                f"points spread over {extent:.0f} mm (numerically singular), or the smoothing is too strong")
+    return warp
+
+
+# --------------------------------------------------------------------------- #
+# the skeleton
+# --------------------------------------------------------------------------- #
+def initial_transform(template: Skeleton, targets: dict[str, Mesh], bones=None) -> np.ndarray:
+    """A rough template world -> target world similarity from the bones' centroids.
+
+    The centroid of each bone's template mesh (template world, ``"model"``) is
+    matched to the centroid of its target mesh (e.g. LPS), a least-squares
+    similarity (Umeyama 1991). It needs no pose knowledge, only three or more
+    bones present in both that are not on one line (pelvis, femora, spine,
+    sternum, skull...). Limbs that lie differently (the MRI pose) make it rough:
+    the per-bone ICPs refine it.
+
+    Parameters
+    ----------
+    template : Skeleton
+    targets : dict of str -> Mesh
+    bones : list of str, optional
+        Bones to use (default: every bone with a mesh in both).
+
+    Returns
+    -------
+    ndarray (4, 4)
+    """
+    names = [n for n in (bones or template.bones) if n in targets and n in template.bones
+             and template.bones[n].mesh is not None]
+    if len(names) < 3:
+        raise ValueError(f"initial_transform needs at least 3 bones in both the template and the targets, "
+                         f"got {names}")
+    A = np.array([template.world_mesh(n).vertices.mean(0) for n in names])
+    B = np.array([targets[n].vertices.mean(0) for n in names])
+    if np.linalg.matrix_rank(A - A.mean(0), tol=1.0) < 2:
+        raise ValueError("the bones' centroids lie on a line: the rotation about it is undetermined")
+    return _kabsch(A, B, scale=True)
+
+
+def _joint_groups(sk: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str, str]]]:
+    """Joint centres that are one joint: same name (or one name with a side suffix, ``sacroiliac_r``) and
+    within ``tol_mm`` of each other in the template world."""
+    entries = [(b, k) for b, bone in sk.bones.items() for k in bone.joint_centres]
+    pos = np.array([sk.bones[b].landmark_in_world(k) for b, k in entries]) if entries else np.zeros((0, 3))
+    parent = list(range(len(entries)))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    if entries:
+        for i, j in cKDTree(pos).query_pairs(tol_mm):
+            (bi, ki), (bj, kj) = entries[i], entries[j]
+            if bi != bj and (ki == kj or ki.startswith(kj + "_") or kj.startswith(ki + "_")):
+                parent[find(i)] = find(j)
+    groups: dict[int, list[tuple[str, str]]] = {}
+    for i, e in enumerate(entries):
+        groups.setdefault(find(i), []).append(e)
+    return list(groups.values())
+
+
+def _default_widths(extent: float, spacing: float) -> list[float]:
+    """Coarse-to-fine Gaussian widths for a bone of size ``extent`` with feature points ``spacing`` apart.
+
+    The first kernel carries the bone-scale bending, the last the local shape.
+    Widths stay within ~1.5-4 feature spacings: wider and the kernel matrix is
+    numerically singular (the fit misses its points), narrower and each point
+    pulls a spike of its own.
+    """
+    return [min(0.3 * extent, 4.0 * spacing), min(0.15 * extent, 2.5 * spacing), min(0.08 * extent, 1.5 * spacing)]
+
+
+def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
+              n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
+              n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray) -> dict[str, Any]:
+    """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
+
+    ``check_pts`` (template world) are where the Jacobian must stay positive: the bone's outer and
+    inner surface vertices."""
+    sub = src_world[np.linspace(0, len(src_world) - 1, min(n_icp, len(src_world))).astype(int)]
+    T_rigid, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior)
+    T_aff, res_aff = affine_icp(sub, target, T_rigid)
+    base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
+    extent = float(np.ptp(base.vertices, axis=0).max())
+    spacing = float(np.sqrt(base.to_trimesh().area / max(n_features, 8)))
+    widths = list(widths) if widths else _default_widths(extent, spacing)
+    current = base
+    warp, flags = None, []
+    for it, w in enumerate(widths):
+        faces_i, bary, dst = _correspondences(current, target, n_features, 60.0, seed + 7 * it)
+        src = np.einsum("nk,nkd->nd", bary, base.vertices[base.faces[faces_i]])
+        # a fold comes from a few contradicting correspondences (a neck or a crest the affine left
+        # apart): more smoothing lets the fit pass them by; the residual check still guards the fit
+        cand, why = None, ""
+        for sm in (smoothing, 10.0 * smoothing):
+            try:
+                c = fit_warp(src, dst, kernel_width_mm=w, smoothing=sm, pre=T_aff, max_residual_mm=max_residual_mm)
+            except ValueError as e:
+                why = str(e)
+                continue
+            det = c.min_jacobian_det(check_pts)
+            if det > 0.05:
+                cand = c
+                break
+            why = f"folds (min Jacobian det {det:.3f})"
+        if cand is None:
+            flags.append(f"width {w:.0f} mm not used: {why}")
+            continue
+        warp = cand
+        current = Mesh(warp(src_world), faces, "target")
+    return {"T_rigid": T_rigid, "T_affine": T_aff, "warp": warp, "affine_residual_mm": res_aff, "flags": flags,
+            "n_features": 0 if warp is None else len(warp.src)}
+
+
+def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_features: int = 600,
+                  kernel_widths_mm=None, smoothing: float = 1e-3, max_residual_mm: float = 1.5,
+                  rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0
+                  ) -> tuple[Skeleton, dict[str, Any]]:
+    """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
+
+    Per bone with a target mesh, in parent-before-child order: rigid ICP
+    (initialised from the parent's rigid result and the template's relative
+    pose, or from ``init`` for the root), affine ICP, then the RBF warp fitted
+    to feature points (:func:`feature_points`, both ways) coarse to fine
+    (kernel widths 0.3, 0.15 and 0.08 x the bone's size, capped at 4, 2.5 and
+    1.5 feature-point spacings; correspondences recomputed from the previous
+    warp each time). A width whose fit misses its feature points or folds the
+    bone (Jacobian determinant <= 0.05 at a vertex of its outer or inner
+    surface, even with 10x the smoothing) is not used: the previous warp stays
+    (or the affine, if no width passed), and the report's ``flags`` say so.
+
+    Outputs per bone:
+
+    - **mesh** (and ``inner_mesh``) and **landmarks**: the warp of the template's.
+    - **bone_to_world**: ISB orientation kept -- the rotation is the polar
+      rotation of the affine ICP's linear part times the template bone's
+      rotation; the origin is the warped template origin.
+    - **joint centres**: a joint shared by several bones (same name, or a
+      side-suffixed name like ``sacroiliac_r``/``sacroiliac``, at the same
+      template place) gets **one** position: the weighted mean of where the
+      warps of the bones that have their own target put it, weights
+      ``1 / (5 mm + d)^2`` with ``d`` the joint centre's distance to that
+      bone's template surface (a warp is reliable near its own bone: both
+      sides of a hip or knee count about equally, while a sacrum's
+      extrapolation to the pubic symphysis hardly counts against the hip
+      bones'). Bones carried by neighbours take it as it is. Joint axes
+      follow each bone's Jacobian.
+
+    Bones without a target (missed or broken by the MRI) are carried by their
+    neighbours: an affine fitted to the warped joint centres they share with
+    bones that have a target; with fewer than 4 such points, the nearest
+    warped relative's affine corrected onto them (3 points: a rigid fit; 2:
+    the smallest rotation turning the joint-to-joint direction and a stretch
+    to its length; 1: a shift), so they stay joined.
+
+    Parameters
+    ----------
+    template : Skeleton
+        World ``"model"`` (or any); meshes in bone frames.
+    targets : dict of str -> Mesh
+        Bone name -> its surface in the target world (LPS mm).
+    init : ndarray (4, 4), optional
+        Rough template world -> target world transform (from matching a few
+        joint centres or :func:`initial_transform`; default: that).
+    n_features : int
+        Feature points drawn per bone and refinement step (<= 1-2 thousand).
+    kernel_widths_mm : sequence of float, optional
+        The coarse-to-fine widths for every bone (default: per bone size).
+    smoothing : float
+        RBF smoothing (see :func:`fit_warp`).
+    max_residual_mm : float
+        Residual check of every fit (95th percentile, mm).
+    rotation_prior : float
+        See :func:`rigid_icp`: keeps the spin a surface leaves undecided (a
+        fibula about its axis) at the parent-carried start (bones started from
+        ``init``, with no warped ancestor, get none: ``init`` is rough).
+    world : str
+        Name of the target world, written to the result's ``world``.
+    seed : int
+        Seed of the surface sampling.
+
+    Returns
+    -------
+    skeleton : Skeleton
+        ``world=world``; same bones, parents and names.
+    report : dict
+        ``bones``: per bone ``source`` ("own target" / "neighbours"),
+        ``n_features``, ``residual_mean_mm``/``residual_max_mm`` (at the feature
+        points), ``min_jacobian_det`` (over the bone's vertices),
+        ``affine_residual_mean_mm`` (template after the affine ICP to target),
+        ``kernel_width_mm``, ``flags``; ``transforms``: per bone the affine
+        ``T_affine`` (template world -> target world, the affine-only
+        baseline); ``seconds``.
+
+    References
+    ----------
+    Kojima et al. (RBFT); Besl & McKay 1992; Higham 1986.
+    """
+    if not isinstance(template, Skeleton):
+        raise ValueError(f"template must be a Skeleton, got {type(template).__name__}")
+    unknown = sorted(set(targets) - set(template.bones))
+    if unknown:
+        raise ValueError(f"targets name bones that are not in the template: {unknown}")
+    for n, m in targets.items():
+        _check_mesh(f"target {n!r}", m)
+    own = [n for n in template.bones if n in targets and template.bones[n].mesh is not None]
+    if not own:
+        raise ValueError("no template bone with a mesh has a target: nothing to warp onto")
+    t_start = time.perf_counter()
+    if init is None:
+        init = initial_transform(template, targets) if len(own) >= 3 else np.eye(4)
+    init = np.asarray(init, dtype=float)
+    if init.shape != (4, 4):
+        raise ValueError(f"init must be a 4x4 transform, got {init.shape}")
+
+    results: dict[str, dict[str, Any]] = {}
+    rigid_of: dict[str, np.ndarray] = {}
+    for i, (name, bone) in enumerate(template.bones.items()):
+        if name not in targets or bone.mesh is None:
+            continue
+        # the nearest ancestor with a rigid result carries the template's relative pose (a child of a
+        # rotated parent starts rotated with it: limbs posed otherwise than the template converge)
+        a = bone.parent
+        while a is not None and a not in rigid_of:
+            a = template.bones[a].parent
+        start = rigid_of[a] if a is not None else init
+        src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
+        check = src_world if bone.inner_mesh is None else np.concatenate(
+            [src_world, _apply(bone.bone_to_world, bone.inner_mesh.vertices)])
+        # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
+        # checks them all
+        check = check[::2]
+        r = _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name]), start, n_features,
+                      kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * i,
+                      rotation_prior if a is not None else 0.0, check)
+        results[name] = r
+        rigid_of[name] = r["T_rigid"]
+
+    def own_map(name: str, p: np.ndarray) -> np.ndarray:
+        r = results[name]
+        return r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
+
+    # joint centres: one position per joint
+    groups = _joint_groups(template)
+    joint_pos: dict[tuple[str, str], np.ndarray] = {}
+    trees: dict[str, cKDTree] = {}
+    for g in groups:
+        own_g = [(b, k) for b, k in g if b in results]
+        if not own_g:
+            continue
+        pts, wts = [], []
+        for b, k in own_g:
+            c0 = template.bones[b].landmark_in_world(k)
+            pts.append(own_map(b, c0[None])[0])
+            if b not in trees:
+                trees[b] = cKDTree(_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices))
+            # a warp is trustworthy near its bone's surface: weight by 1 / (5 mm + distance)^2, so a
+            # pubic symphysis listed by the sacrum comes from the hip bones that reach it
+            wts.append(1.0 / (5.0 + trees[b].query(c0)[0]) ** 2)
+        c = np.average(np.array(pts), axis=0, weights=np.array(wts))
+        for e in g:
+            joint_pos[e] = c
+
+    # bones without a target: an affine from the joints they share with warped bones
+    carried: dict[str, np.ndarray] = {}
+    for name, bone in template.bones.items():
+        if name in results:
+            continue
+        A = [bone.landmark_in_world(k) for k in bone.joint_centres if (name, k) in joint_pos]
+        B = [joint_pos[(name, k)] for k in bone.joint_centres if (name, k) in joint_pos]
+        rel = _nearest_relative(template, name, results, carried)
+        M = rel if rel is not None else init
+        M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3))
+        carried[name] = M
+        # the joints it shares only with other carried bones follow it
+        for k in bone.joint_centres:
+            if (name, k) not in joint_pos:
+                p = _apply(M, bone.landmark_in_world(k)[None])[0]
+                for g in groups:
+                    if (name, k) in g:
+                        for e in g:
+                            joint_pos.setdefault(e, p)
+
+    def bone_map(name: str, p: np.ndarray) -> np.ndarray:
+        return own_map(name, p) if name in results else _apply(carried[name], p)
+
+    def bone_affine(name: str) -> np.ndarray:
+        return results[name]["T_affine"] if name in results else carried[name]
+
+    def bone_rotation(name: str) -> np.ndarray:
+        # own target: the rigid ICP's rotation (the affine's polar rotation can pick up a spin the shear
+        # trades for); carried: the polar rotation of the fitted affine
+        return results[name]["T_rigid"][:3, :3] if name in results else _polar_rotation(carried[name][:3, :3])
+
+    new_bones: dict[str, Bone] = {}
+    report_bones: dict[str, Any] = {}
+    for name, bone in template.bones.items():
+        A = bone_affine(name)
+        R = bone_rotation(name) @ bone.bone_to_world[:3, :3]
+        o = bone_map(name, bone.bone_to_world[:3, 3][None])[0]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, o
+        Tinv = np.linalg.inv(T)
+
+        def to_bone(p_world: np.ndarray) -> np.ndarray:
+            return _apply(Tinv, p_world)
+
+        def mp(m: Mesh | None) -> Mesh | None:
+            if m is None:
+                return None
+            return Mesh(to_bone(bone_map(name, _apply(bone.bone_to_world, m.vertices))), m.faces.copy(), name)
+
+        jc = {}
+        for k, v in bone.joint_centres.items():
+            p = joint_pos.get((name, k))
+            if p is None:
+                p = bone_map(name, _apply(bone.bone_to_world, v[None]))[0]
+            jc[k] = to_bone(p[None])[0]
+        lm = {k: to_bone(bone_map(name, _apply(bone.bone_to_world, v[None])))[0] for k, v in bone.landmarks.items()}
+        axes = {}
+        for k, ax in bone.joint_axes.items():
+            c = _apply(bone.bone_to_world, (bone.joint_centres.get(k, np.zeros(3)))[None])
+            J = results[name]["warp"].jacobian(c)[0] if name in results and results[name]["warp"] is not None \
+                else A[:3, :3]
+            axes[k] = R.T @ (J @ (bone.bone_to_world[:3, :3] @ ax))
+        meta = dict(bone.metadata)
+        meta["personalized"] = "own target" if name in results else "neighbours"
+        new_bones[name] = Bone(name=name, parent=bone.parent, mesh=mp(bone.mesh), bone_to_world=T,
+                               joint_centres=jc, joint_axes=axes, landmarks=lm, inner_mesh=mp(bone.inner_mesh),
+                               metadata=meta)
+        if name in results:
+            r = results[name]
+            w = r["warp"]
+            verts = _apply(bone.bone_to_world, bone.mesh.vertices)
+            if bone.inner_mesh is not None:
+                verts = np.concatenate([verts, _apply(bone.bone_to_world, bone.inner_mesh.vertices)])
+            report_bones[name] = {
+                "source": "own target",
+                "n_features": r["n_features"],
+                "residual_mean_mm": float(w.residual_mm.mean()) if w is not None else None,
+                "residual_max_mm": float(w.residual_mm.max()) if w is not None else None,
+                "min_jacobian_det": float(w.min_jacobian_det(verts)) if w is not None
+                else float(np.linalg.det(A[:3, :3])),
+                "affine_residual_mean_mm": float(r["affine_residual_mm"].mean()),
+                "kernel_width_mm": w.kernel_width_mm if w is not None else None,
+                "flags": r["flags"],
+            }
+        else:
+            report_bones[name] = {"source": "neighbours", "n_features": 0, "residual_mean_mm": None,
+                                  "residual_max_mm": None, "min_jacobian_det": float(np.linalg.det(A[:3, :3])),
+                                  "affine_residual_mean_mm": None, "kernel_width_mm": None, "flags": []}
+    meta = dict(template.metadata)
+    meta["personalized"] = {"method": "rigid ICP, affine ICP, Gaussian RBF (Kojima et al. RBFT)",
+                            "n_features": n_features, "smoothing": smoothing, "init": init.tolist()}
+    out = Skeleton(bones=new_bones, world=world, metadata=meta)
+    report = {"bones": report_bones,
+              "transforms": {n: bone_affine(n).tolist() for n in template.bones},
+              "init": init.tolist(), "seconds": time.perf_counter() - t_start}
+    return out, report
+
+
+def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Correct a relative's affine ``M`` so the template joint centres ``A`` land on their warped places ``B``.
+
+    4+ points spanning 3-D: the least-squares affine. Otherwise ``M`` followed by
+    the smallest correction: 3 points, a rigid fit (Umeyama); 2, the rotation
+    turning the joint-to-joint direction onto the warped one and a stretch
+    along it to the warped length, about their midpoint; 1, a shift.
+    """
+    k = len(A)
+    if k == 0:
+        return M
+    if k >= 4 and np.linalg.matrix_rank(A - A.mean(0), tol=1.0) == 3:
+        return _fit_affine(A, B)
+    MA = _apply(M, A)
+    C = np.eye(4)
+    if k >= 3 and np.linalg.matrix_rank(MA - MA.mean(0), tol=1.0) >= 2:
+        C = _kabsch(MA, B)
+    elif k >= 2:
+        u, v = MA[-1] - MA[0], B[-1] - B[0]
+        stretch = float(np.linalg.norm(v) / max(np.linalg.norm(u), 1e-9))
+        u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+        ax, c = np.cross(u, v), float(u @ v)
+        if np.linalg.norm(ax) > 1e-9:
+            from scipy.spatial.transform import Rotation
+
+            C[:3, :3] = Rotation.from_rotvec(ax / np.linalg.norm(ax) * np.arccos(np.clip(c, -1, 1))).as_matrix()
+        # the length between the two joints is known: stretch along it (the relative's affine scaled its own
+        # bone, not this one)
+        C[:3, :3] = C[:3, :3] @ (np.eye(3) + (stretch - 1.0) * np.outer(u, u))
+        C[:3, 3] = B.mean(0) - C[:3, :3] @ MA.mean(0)
+    else:
+        C[:3, 3] = B.mean(0) - MA.mean(0)
+    return C @ M
+
+
+def _nearest_relative(sk: Skeleton, name: str, results: dict, carried: dict) -> np.ndarray | None:
+    """The affine of the nearest ancestor (else child) that was warped or carried."""
+    a = sk.bones[name].parent
+    while a is not None:
+        if a in results:
+            return results[a]["T_affine"]
+        if a in carried:
+            return carried[a]
+        a = sk.bones[a].parent
+    for n, b in sk.bones.items():
+        if b.parent == name and n in results:
+            return results[n]["T_affine"]
+    return None

@@ -1,0 +1,201 @@
+"""Tests of bonecap.motion.lsq: the joint-coupled least-squares solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bonecap.model import Bone, Skeleton
+from bonecap.motion.lsq import _fit_qcp, lowpass_markers, plan_segments, solve_lsq
+from bonecap.motion.rigid import fit_rigid, rotation_angle_deg
+from bonecap.skeleton.kinematics import pose_skeleton
+
+
+def chain_skeleton():
+    """pelvis -> thigh -> shank -> foot, ball joints 'hip', 'knee', 'ankle' (mm, frames = world at rest)."""
+    def T(z):
+        M = np.eye(4)
+        M[2, 3] = z
+        return M
+    bones = {
+        "pelvis": Bone("pelvis", None, bone_to_world=T(1000), joint_centres={"hip": [0, 0, -50]}),
+        "thigh": Bone("thigh", "pelvis", bone_to_world=T(950), joint_centres={"hip": [0, 0, 0], "knee": [0, 0, -400]}),
+        "shank": Bone("shank", "thigh", bone_to_world=T(550), joint_centres={"knee": [0, 0, 0], "ankle": [0, 0, -400]}),
+        "foot": Bone("foot", "shank", bone_to_world=T(150), joint_centres={"ankle": [0, 0, 0]}),
+    }
+    return Skeleton(bones, world="model")
+
+
+# markers: 4 on the pelvis, only 2 on thigh and shank (a rigid fit needs 3), 3 on the foot
+MARKER_BONES = ["pelvis"] * 4 + ["thigh"] * 2 + ["shank"] * 2 + ["foot"] * 3
+MARKER_LOCAL = np.array([[100, 80, 0], [100, -80, 0], [-80, 60, 20], [-80, -60, 20],
+                         [60, 10, -150], [0, 70, -390],
+                         [50, 0, -120], [0, 60, -380],
+                         [120, 0, -40], [-40, 30, -50], [-30, -30, -45]], float)
+
+
+def truth_motion(F=60, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, F)
+    root = np.tile(np.eye(4), (F, 1, 1))
+    root[:, :3, :3] = Rotation.from_rotvec(np.c_[0.2 * np.sin(2 * np.pi * t), 0.1 * t, 1.5 * t]).as_matrix()
+    root[:, :3, 3] = np.c_[800 * t, 20 * np.sin(4 * t), 1000 + 10 * t]
+    rots = {b: np.c_[a * np.sin(2 * np.pi * t + p), 0.3 * np.cos(3 * t + p), 0.2 * t]
+            for b, a, p in (("thigh", 0.6, 0.0), ("shank", 1.0, 1.0), ("foot", 0.4, 2.0))}
+    skel = chain_skeleton()
+    T = pose_skeleton(skel, root, rots)
+    bi = [skel.names.index(b) for b in MARKER_BONES]
+    Tb = T[:, bi]
+    markers = np.einsum("fmij,mj->fmi", Tb[..., :3, :3], MARKER_LOCAL) + Tb[..., :3, 3]
+    return skel, T, markers, rng
+
+
+def test_qcp_matches_svd_fit():
+    rng = np.random.default_rng(3)
+    P = rng.normal(0, 50, (6, 3))
+    R = Rotation.random(200, random_state=4).as_matrix()
+    Q = np.einsum("fij,kj->fki", R, P) + rng.normal(0, 1000, (200, 1, 3)) + rng.normal(0, 2, (200, 6, 3))
+    w = rng.uniform(0.2, 2, (200, 6))
+    Rq, tq, v = _fit_qcp(P, Q.transpose(0, 2, 1), w)
+    ref = fit_rigid(P, Q, w)
+    assert v.all()
+    assert np.abs(Rq - ref.transforms[:, :3, :3]).max() < 1e-8
+    assert np.abs(tq - ref.transforms[:, :3, 3]).max() < 1e-6
+    # collinear points are flagged, as in fit_rigid
+    line = np.c_[np.arange(4.0), np.zeros(4), np.zeros(4)]
+    assert not _fit_qcp(line, (line[None] + 1).transpose(0, 2, 1), np.ones((1, 4)))[2][0]
+    # a point of weight 0 is left out whatever its value
+    Qn = Q.copy()
+    Qn[:, 0] = 1e6
+    w0 = w.copy()
+    w0[:, 0] = 0.0
+    Rn = _fit_qcp(P, Qn.transpose(0, 2, 1), w0)[0]
+    assert np.abs(Rn - fit_rigid(P[1:], Q[:, 1:], w[:, 1:]).transforms[:, :3, :3]).max() < 1e-8
+
+
+def test_plan_segments_rules():
+    skel = chain_skeleton()
+    plan = plan_segments(skel, MARKER_BONES)
+    assert plan.roots() == ["pelvis", "thigh", "shank", "foot"]
+    # a shank with one marker cannot carry itself: it rides on the thigh
+    mb = ["pelvis"] * 4 + ["thigh"] * 2 + ["shank"] + ["foot"] * 3
+    plan = plan_segments(skel, mb)
+    assert plan.segment_of["shank"] == plan.segment_of["thigh"]
+    # a marker-less shank takes over the foot below it (joint at the knee, not the ankle)
+    mb = ["pelvis"] * 4 + ["thigh"] * 2 + ["foot"] * 3
+    plan = plan_segments(skel, mb)
+    seg = plan.segments[plan.segment_of["foot"]]
+    assert seg.root == "shank" and seg.joint == "knee" and "foot" in seg.members
+
+
+def test_coupled_solver_exact_on_noise_free_ball_joints():
+    skel, T, markers, _ = truth_motion()
+    mo = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers, rate_hz=100.0)
+    assert mo.valid.all()
+    assert np.nanmax(rotation_angle_deg(mo.transforms, T)) < 1e-6
+    assert np.abs(mo.transforms - T).max() < 1e-5
+    assert np.nanmax(mo.residuals) < 1e-6
+    assert mo.times[1] == pytest.approx(0.01)
+
+
+def test_coupling_beats_uncoupled_with_noise():
+    skel, T, markers, rng = truth_motion(F=200, seed=1)
+    noisy = markers + rng.normal(0, 1.5, markers.shape)
+    coupled = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, noisy)
+    loose = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, noisy, joint_weight=0.0)
+    # two markers cannot place a thigh without its joints
+    i = skel.names.index("thigh")
+    assert coupled.valid[:, i].all() and not loose.valid[:, i].any()
+    # the foot (3 markers) is solved both ways; the joint makes it better
+    j = skel.names.index("foot")
+    e_c = np.median(rotation_angle_deg(coupled.transforms[:, j], T[:, j]))
+    e_l = np.median(rotation_angle_deg(loose.transforms[:, j], T[:, j]))
+    assert e_c < 0.9 * e_l
+
+
+def test_gaps_interpolated_then_invalid():
+    skel, T, markers, _ = truth_motion(F=80)
+    gapped = markers.copy()
+    ft = [k for k, b in enumerate(MARKER_BONES) if b == "foot"]
+    gapped[20:26, ft] = np.nan  # 6 frames: interpolated
+    gapped[50:70, ft] = np.nan  # 20 frames: longer than max_gap_frames
+    mo = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, gapped, max_gap_frames=10)
+    j = skel.names.index("foot")
+    assert mo.valid[20:26, j].all()
+    assert rotation_angle_deg(mo.transforms[20:26, j], T[20:26, j]).max() < 3.0
+    assert not mo.valid[50:70, j].any() and np.isnan(mo.transforms[50:70, j]).all()
+    assert mo.valid[:20, j].all() and mo.valid[70:, j].all()
+    assert np.isnan(mo.residuals[55, ft]).all()
+
+
+def test_input_checks():
+    skel, _, markers, _ = truth_motion(F=5)
+    with pytest.raises(ValueError, match="marker_local"):
+        solve_lsq(skel, MARKER_BONES, MARKER_LOCAL[:3], markers)
+    with pytest.raises(ValueError, match="measured"):
+        solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers[0])
+    with pytest.raises(ValueError, match="joint_weight"):
+        solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers, joint_weight=-1)
+    with pytest.raises(ValueError, match="not in the skeleton"):
+        solve_lsq(skel, MARKER_BONES[:-1] + ["wing"], MARKER_LOCAL, markers)
+
+
+def test_lowpass_zero_lag_and_gap_aware():
+    rate = 100.0
+    t = np.arange(400) / rate
+    clean = 100 * np.sin(2 * np.pi * 1.0 * t)
+    x = np.zeros((400, 2, 3))
+    x[:, :, 0] = (clean + 5 * np.sin(2 * np.pi * 30 * t))[:, None]
+    x[150:170, 1] = np.nan
+    y = lowpass_markers(x, rate, cutoff_hz=6.0)
+    assert np.isnan(y[150:170, 1]).all() and np.isfinite(y[:150, 1]).all()
+    core = slice(40, 360)
+    assert np.abs(y[core, 0, 0] - clean[core]).max() < 1.0  # 30 Hz gone, no phase lag
+    assert np.abs(y[40:110, 1, 0] - clean[40:110]).max() < 1.0
+    with pytest.raises(ValueError, match="Nyquist"):
+        lowpass_markers(x, rate, cutoff_hz=60.0)
+
+
+# --------------------------------------------------------------------------- phantom
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    from bonecap.phantom import make_phantom
+
+    out = tmp_path_factory.mktemp("ph")
+    make_phantom(out, seed=2, preset="tiny")
+    return out
+
+
+def skeleton_from_truth(truth):
+    import json
+
+    doc = json.load(open(truth / "skeleton.json"))["bones"]
+    bones = {}
+    for n, b in doc.items():
+        T = np.array(b["bone_to_lps"])
+        Ti = np.linalg.inv(T)
+        loc = {k: Ti[:3, :3] @ np.array(v) + Ti[:3, 3] for k, v in b["joint_centres_lps"].items()}
+        lm = {k: Ti[:3, :3] @ np.array(v) + Ti[:3, 3] for k, v in b.get("landmarks_lps", {}).items()}
+        bones[n] = Bone(n, b["parent"], bone_to_world=T, joint_centres=loc, landmarks=lm)
+    return Skeleton(bones, world="lps")
+
+
+def test_phantom_trials_against_truth(phantom):
+    from bonecap.io.c3d import read_c3d
+
+    skel = skeleton_from_truth(phantom / "truth")
+    for trial, limit in (("arm_raise", 1.5), ("touch", 2.0)):
+        d = np.load(phantom / "truth" / f"{trial}_poses.npz")
+        tr = read_c3d(phantom / "trials" / f"{trial}.c3d")
+        meas = tr.points[:, [tr.labels.index(m) for m in d["markers"]]]
+        mo = solve_lsq(skel, list(d["marker_bones"]), d["marker_local"], meas, marker_labels=list(d["markers"]))
+        names = list(d["bones"])
+        for bone in ("humerus_r", "humerus_l", "femur_r", "tibia_r", "ulna_r"):
+            i = names.index(bone)
+            deg = rotation_angle_deg(mo.transforms[:, i], d["transforms"][:, i])
+            assert np.nanmedian(deg) < limit, (trial, bone, np.nanmedian(deg))
+            mm = np.linalg.norm(mo.transforms[:, i, :3, 3] - d["transforms"][:, i, :3, 3], axis=1)
+            assert np.nanmedian(mm) < 3.0, (trial, bone, np.nanmedian(mm))
