@@ -216,13 +216,49 @@ def check_marker_set(marker_set: MarkerSet, skeleton: Skeleton) -> None:
                         marker_set.source or None)
 
 
+def _nearest_surface_normals(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Outward normal of the mesh surface nearest to each point (bone frame, mm).
+
+    Exact nearest triangle without building an R-tree: a triangle nearer than the
+    nearest vertex (distance ``d``) has all its vertices within ``d`` + the longest
+    edge, so only the triangles touching those vertices (one k-d tree query) are
+    tested. Landmarks usually sit exactly on a vertex, where several triangles are
+    equally near: their area-weighted normals are averaged, so the direction does not
+    depend on which of them a search returns first.
+    """
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(vertices, float)
+    Fc = np.asarray(faces)
+    tri_all = V[Fc]
+    edge = float(np.linalg.norm(tri_all - np.roll(tri_all, 1, axis=1), axis=2).max())
+    tree = cKDTree(V)
+    d_v, _ = tree.query(points)
+    out = np.zeros((len(points), 3))
+    # faces around each vertex, once (vertex -> faces as a CSR-like table)
+    order = np.argsort(Fc.ravel(), kind="stable")
+    starts = np.searchsorted(Fc.ravel()[order], np.arange(len(V) + 1))
+    for i, p in enumerate(np.asarray(points, float)):
+        near_v = np.asarray(tree.query_ball_point(p, d_v[i] + edge + 1e-9), dtype=np.int64)
+        cand = np.unique(np.concatenate([order[starts[v]:starts[v + 1]] for v in near_v]) // 3)
+        tri = tri_all[cand]
+        q = trimesh.triangles.closest_point(tri, np.repeat(p[None], len(cand), axis=0))
+        d = np.linalg.norm(q - p, axis=1)
+        near = d <= d.min() + 1e-6
+        n = np.cross(tri[near, 1] - tri[near, 0], tri[near, 2] - tri[near, 0]).sum(axis=0)
+        out[i] = n / max(float(np.linalg.norm(n)), 1e-12)
+    return out
+
+
 def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | None = None
                   ) -> dict[str, np.ndarray]:
     """Place markers on a skeleton at its reference pose.
 
     Each marker sits at its landmark pushed ``offset_mm`` along the outward
-    normal of the bone surface nearest to the landmark (a bone without a mesh
-    uses the direction from the bone origin). Markers given by ``location`` are
+    normal of the bone surface nearest to the landmark (averaged over equally
+    near triangles, e.g. at a vertex; a bone without a mesh uses the direction
+    from the bone origin). Markers given by ``location`` are
     mapped to the world directly.
 
     Parameters
@@ -250,10 +286,8 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
                           (bone.landmarks.get(m.landmark) if m.landmark in bone.landmarks
                            else bone.joint_centres[m.landmark]) for m in defs])
         offsets = np.array([0.0 if m.location is not None else m.offset_mm for m in defs])
-        if bone.mesh is not None and np.any(offsets):
-            tm = bone.mesh.to_trimesh()
-            _, _, tri = tm.nearest.on_surface(local)
-            normals = tm.face_normals[tri]
+        if bone.mesh is not None and len(bone.mesh.faces) and np.any(offsets):
+            normals = _nearest_surface_normals(bone.mesh.vertices, bone.mesh.faces, local)
         else:
             normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
         local = local + offsets[:, None] * normals

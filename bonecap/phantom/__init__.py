@@ -96,7 +96,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     """
     from bonecap.markers import load_marker_set
     from bonecap.phantom.mri import ForearmPose, plan_stations, render_forearm_stacks, render_stations
-    from bonecap.phantom.subject import make_subject
+    from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
 
@@ -123,6 +123,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 2. Whole-body stations.
+    release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("stations")
     skin_lps = layers[0][0]
@@ -144,6 +145,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 3. Forearm stacks at the paper's twists.
+    release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("forearm")
     poses, forearm_truth = {}, {}
@@ -182,6 +184,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 4. Trials.
+    release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("trials")
     marker_set = load_marker_set("kojima_paper") if str(generic) == "default" else template_marker_set(generic)
@@ -191,6 +194,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 5. The rest of the truth.
+    release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("truth")
     meshes_dir = truth / "meshes"

@@ -256,7 +256,7 @@ PRESETS: dict[str, dict[str, float]] = {
     "default": {"spacing": 3.5, "sample_spacing": 2.0, "skin_faces": 200_000, "muscle_faces": 200_000,
                 "taubin_iterations": 10},
     "tiny": {"spacing": 6.0, "sample_spacing": 3.5, "skin_faces": 20_000, "muscle_faces": 20_000,
-             "taubin_iterations": 6},
+             "taubin_iterations": 6, "bone_resolution": 2.5},
 }
 
 _F_MIN = 1.5      # minimum fat (skin to fascia) thickness, mm
@@ -634,11 +634,15 @@ def build_subject_skeleton(params: dict[str, Any], generic="default") -> Skeleto
     """
     stature = float(params["stature_mm"])
     if not _is_osim(generic):
-        from bonecap.skeleton.generic import build_generic_skeleton
+        from bonecap.skeleton.generic import _build_generic_skeleton
 
         sp = dict(params["skeleton"])
         per_side = any(k[-2:] in ("_r", "_l") for k in sp)
-        sk = build_generic_skeleton(stature_mm=stature, params=sp, side_mirroring=not per_side)
+        # the tiny preset images at >= 4 mm: bones meshed on a grid 2.5 times as coarse (same shapes,
+        # frames and parameters, undecimated) are ~6x cheaper and still finer than its voxels
+        resolution = float(PRESETS.get(params.get("preset", "default"), {}).get("bone_resolution", 1.0))
+        sk = _build_generic_skeleton(stature_mm=stature, params=sp, side_mirroring=not per_side,
+                                     resolution=resolution)
         sk.world = WORLD
         sk.metadata = dict(sk.metadata)
         sk.metadata["phantom"] = {"template": "default"}
@@ -1870,6 +1874,7 @@ class _Grid:
     def __init__(self, origin, h, shape):
         self.origin, self.h, self.shape = np.asarray(origin, dtype=float), float(h), tuple(shape)
         self.axes = [(self.origin[i] + self.h * np.arange(self.shape[i])).astype(np.float32) for i in range(3)]
+        self._coarse: dict[tuple, np.ndarray] = {}
 
     def points(self, flat_idx: np.ndarray) -> np.ndarray:
         ijk = np.unravel_index(flat_idx, self.shape)
@@ -1877,16 +1882,48 @@ class _Grid:
 
     def noise(self, flat_idx: np.ndarray, seed: int, wavelengths) -> np.ndarray:
         step = 4
-        cshape = tuple(n // step + 2 for n in self.shape)
-        ci = [np.arange(n) * step for n in cshape]
-        P = np.stack(np.meshgrid(*[self.origin[i] + self.h * ci[i] for i in range(3)], indexing="ij"), axis=-1)
-        coarse = _noise_field(P.reshape(-1, 3), seed, wavelengths).reshape(cshape)
+        key = (int(seed), tuple(wavelengths))
+        coarse = self._coarse.get(key)
+        if coarse is None:                   # the lattice once per field: the body is filled in slabs
+            cshape = tuple(n // step + 2 for n in self.shape)
+            ci = [np.arange(n) * step for n in cshape]
+            P = np.stack(np.meshgrid(*[self.origin[i] + self.h * ci[i] for i in range(3)], indexing="ij"), axis=-1)
+            coarse = self._coarse[key] = _noise_field(P.reshape(-1, 3), seed, wavelengths).reshape(cshape)
         out = np.empty(len(flat_idx), dtype=np.float32)
         for i0 in range(0, len(flat_idx), 1_000_000):
             ijk = np.unravel_index(flat_idx[i0:i0 + 1_000_000], self.shape)
             coords = np.stack([ijk[i] / step for i in range(3)])
             out[i0:i0 + 1_000_000] = ndimage.map_coordinates(coarse, coords, order=1, mode="nearest")
         return out
+
+
+def release_memory() -> None:
+    """Hand freed heap memory back to the system (glibc only; elsewhere a no-op).
+
+    The phantom allocates and frees grids of tens of MB stage after stage; glibc
+    serves large blocks from the heap once its dynamic mmap threshold has grown,
+    and the freed space then stays in the process. Fixing the threshold at 4 MB
+    (every grid-sized array its own mapping, returned on free; smaller ones stay
+    on the heap, which avoids the page-fault cost of mapping every slab) and
+    trimming the heap between stages keeps the resident memory nearer to what is
+    alive.
+    """
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 4 * 1024 * 1024)          # M_MMAP_THRESHOLD (also disables its dynamic growth)
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):         # not glibc
+        pass
+
+
+def _label(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """Connected components of a boolean grid, as uint16 labels when they fit (half the memory of int32)."""
+    try:
+        return ndimage.label(mask, output=np.uint16)
+    except RuntimeError:                      # more than 65535 components
+        return ndimage.label(mask, output=np.int32)
 
 
 def _fill_cavities(field: np.ndarray, value: float) -> None:
@@ -1896,8 +1933,7 @@ def _fill_cavities(field: np.ndarray, value: float) -> None:
     ``value`` (< 0), and inside components other than the largest (specks) to
     ``-value``.
     """
-    outside = field >= 0
-    lab, n = ndimage.label(outside)
+    lab, n = _label(field >= 0)
     if n > 1:
         border = np.unique(np.concatenate([lab[0].ravel(), lab[-1].ravel(), lab[:, 0].ravel(), lab[:, -1].ravel(),
                                            lab[:, :, 0].ravel(), lab[:, :, -1].ravel()]))
@@ -1905,22 +1941,38 @@ def _fill_cavities(field: np.ndarray, value: float) -> None:
         keep[border] = True
         keep[0] = True
         field[~keep[lab]] = value
-    del lab, outside
-    lab, n = ndimage.label(field < 0)
+    del lab
+    lab, n = _label(field < 0)
     if n > 1:
-        sizes = np.bincount(lab.ravel())
+        sizes = np.zeros(n + 1, dtype=np.int64)
+        for part in lab:                      # per plane: bincount's int64 copy of the grid would be 8x its size
+            sizes += np.bincount(part.ravel(), minlength=n + 1)
         sizes[0] = 0
-        field[(lab != 0) & (lab != int(np.argmax(sizes)))] = -value
+        drop = np.ones(n + 1, dtype=bool)
+        drop[[0, int(np.argmax(sizes))]] = False
+        field[drop[lab]] = -value
+
+
+#: Voxels per slab of the body grid (~6 MB per float32 array of a slab).
+_SLAB_VOXELS = 1_500_000
+
+
+def _y_slabs(shape: tuple[int, int, int]) -> list[tuple[int, int]]:
+    """Ranges ``[j0, j1)`` along the grid's long (Y, superior) axis, ~:data:`_SLAB_VOXELS` each."""
+    dy = max(4, _SLAB_VOXELS // max(shape[0] * shape[2], 1))
+    return [(j0, min(j0 + dy, shape[1])) for j0 in range(0, shape[1], dy)]
 
 
 def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings: dict) -> tuple:
-    """Skin and fascia fields on a regular grid (``field[i, j, k]`` at ``origin + h (i, j, k)``).
+    """Skin and fascia fields on a regular grid (``field[i, j, k]`` at ``origin + h (i, j, k)``), model frame.
 
-    Memory: three float32 arrays of the grid (~18 M voxels for a whole body
-    with abducted arms at 3.5 mm: 72 MB each) plus the segments' blocks; the
-    segment distances are evaluated in slabs, the bone distance in chunks, only
-    near bones and not deep inside the body (where neither surface can come
-    near a bone).
+    Memory: the grid is filled in slabs along Y (:func:`_y_slabs`): segment
+    distances, fat thickness, skin relief and the distance to the bones are
+    computed per slab in float32 and only the two results are kept for the
+    whole grid, as float16 (~18 M voxels for a whole body with abducted arms at
+    3.5 mm: 36 MB each; float16 keeps 1/1000 of the value, < 0.01 mm near the
+    surfaces). Cavities are filled on the whole grid (they need its
+    connectivity). The result is the same as filling the whole grid at once.
     """
     t0 = time.perf_counter()
     bp = params["body"]
@@ -1935,114 +1987,194 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
     grid = _Grid(origin, h, shape)
     axes = grid.axes
     BIG = np.float32(1e4)
-    A = np.full(shape, BIG, dtype=np.float32)
-    num = np.zeros(shape, dtype=np.float32)
-    den = np.zeros(shape, dtype=np.float32)
-    blocks: dict[str, tuple[tuple[slice, ...], np.ndarray]] = {}
+    S = np.empty(shape, dtype=np.float16)      # the skin field
+    Fat = np.empty(shape, dtype=np.float16)    # fat thickness, then the fascia field in place
     kmax = max(k for _, _, k in plan.edges)
     tau = np.float32(12.0)
+    amp = float(bp["skin_noise_mm"])
+    # bone proximity: occupied voxels, dilated by the largest margin per slab (with a halo)
+    R = float(smp.m_skin.max()) + 4.0
+    r = int(math.ceil(R / h))
+    ijk = np.round((W - origin) / h).astype(np.int64)
+    occ = np.zeros(shape, dtype=np.uint8)
+    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
+    del ijk
+    tree = cKDTree(W)
+    boxes = {}
     for name, sh in plan.shapes.items():
         a, b = sh.bbox()
         i0 = np.clip(np.floor((a - kmax - 5.0 - origin) / h).astype(int), 0, np.array(shape) - 1)
         i1 = np.clip(np.ceil((b + kmax + 5.0 - origin) / h).astype(int) + 1, 1, np.array(shape))
-        sl = tuple(slice(i0[i], i1[i]) for i in range(3))
-        Yb = axes[1][sl[1]][None, :, None]
-        Zb = axes[2][sl[2]][None, None, :]
-        d = np.empty(tuple(x.stop - x.start for x in sl), dtype=np.float32)
-        step = max(1, 400_000 // max(d.shape[1] * d.shape[2], 1))
-        for j0 in range(0, d.shape[0], step):    # in slabs: the distance's temporaries stay small
-            Xb = axes[0][sl[0]][j0:j0 + step, None, None]
-            dj = sh.sdf(Xb, Yb, Zb)
-            d[j0:j0 + step] = dj
-            # fat thickness: a soft-min weighted mean over the segments (smooth across the joins)
-            w = np.exp(-np.clip(dj, -60.0, 400.0) / tau)
-            sub = (slice(sl[0].start + j0, sl[0].start + j0 + dj.shape[0]), sl[1], sl[2])
-            num[sub] += w * sh.fat(Xb, Yb, Zb)
-            den[sub] += w
-        np.minimum(A[sl], d, out=A[sl])
-        blocks[name] = (sl, d)
-    for na, nb, k in plan.edges:
-        if na not in blocks or nb not in blocks:
-            continue
-        (sa, da), (sb, db) = blocks[na], blocks[nb]
-        lo_i = [max(sa[i].start, sb[i].start) for i in range(3)]
-        hi_i = [min(sa[i].stop, sb[i].stop) for i in range(3)]
-        if any(l >= u for l, u in zip(lo_i, hi_i)):
-            continue
-        box = tuple(slice(lo_i[i], hi_i[i]) for i in range(3))
-        va = da[tuple(slice(lo_i[i] - sa[i].start, hi_i[i] - sa[i].start) for i in range(3))]
-        vb = db[tuple(slice(lo_i[i] - sb[i].start, hi_i[i] - sb[i].start) for i in range(3))]
-        np.minimum(A[box], _smin(va, vb, np.float32(k)), out=A[box])
-    del blocks
-    f = num                                   # in place: the grid arrays dominate the memory
-    np.divide(num, den, out=f, where=den > 1e-20)
-    f[den <= 1e-20] = 8.0
-    del den
-    timings["segments"] = time.perf_counter() - t0
+        boxes[name] = (i0, i1)
+    cand_all, bm_all = [], []
+    n_cand = 0
+    t_seg = t_bone = 0.0
+    for y0, y1 in _y_slabs(shape):
+        ts = time.perf_counter()
+        sshape = (shape[0], y1 - y0, shape[2])
+        A = np.full(sshape, BIG, dtype=np.float32)
+        num = np.zeros(sshape, dtype=np.float32)
+        den = np.zeros(sshape, dtype=np.float32)
+        blocks: dict[str, tuple[tuple[slice, ...], np.ndarray]] = {}
+        for name, sh in plan.shapes.items():
+            i0, i1 = boxes[name]
+            j0, j1 = max(i0[1], y0), min(i1[1], y1)
+            if j0 >= j1:
+                continue
+            sl = (slice(i0[0], i1[0]), slice(j0 - y0, j1 - y0), slice(i0[2], i1[2]))   # slab-local
+            Yb = axes[1][j0:j1][None, :, None]
+            Zb = axes[2][sl[2]][None, None, :]
+            d = np.empty(tuple(x.stop - x.start for x in sl), dtype=np.float32)
+            step = max(1, 400_000 // max(d.shape[1] * d.shape[2], 1))
+            for x0 in range(0, d.shape[0], step):    # the distance's temporaries stay small
+                Xb = axes[0][sl[0]][x0:x0 + step, None, None]
+                dj = sh.sdf(Xb, Yb, Zb)
+                d[x0:x0 + step] = dj
+                # fat thickness: a soft-min weighted mean over the segments (smooth across the joins)
+                w = np.exp(-np.clip(dj, -60.0, 400.0) / tau)
+                sub = (slice(sl[0].start + x0, sl[0].start + x0 + dj.shape[0]), sl[1], sl[2])
+                num[sub] += w * sh.fat(Xb, Yb, Zb)
+                den[sub] += w
+            np.minimum(A[sl], d, out=A[sl])
+            blocks[name] = (sl, d)
+        for na, nb, k in plan.edges:
+            if na not in blocks or nb not in blocks:
+                continue
+            (sa, da), (sb, db) = blocks[na], blocks[nb]
+            lo_i = [max(sa[i].start, sb[i].start) for i in range(3)]
+            hi_i = [min(sa[i].stop, sb[i].stop) for i in range(3)]
+            if any(l >= u for l, u in zip(lo_i, hi_i)):
+                continue
+            box = tuple(slice(lo_i[i], hi_i[i]) for i in range(3))
+            va = da[tuple(slice(lo_i[i] - sa[i].start, hi_i[i] - sa[i].start) for i in range(3))]
+            vb = db[tuple(slice(lo_i[i] - sb[i].start, hi_i[i] - sb[i].start) for i in range(3))]
+            np.minimum(A[box], _smin(va, vb, np.float32(k)), out=A[box])
+        del blocks
+        f = num                                   # in place
+        np.divide(num, den, out=f, where=den > 1e-20)
+        f[den <= 1e-20] = 8.0
+        del den
+        t_seg += time.perf_counter() - ts
+        ts = time.perf_counter()
+        base = y0 * shape[2]                      # slab-local flat index -> grid flat index
+
+        def to_grid(flat):
+            i, rest = np.divmod(flat, sshape[1] * sshape[2])
+            return i * (shape[1] * shape[2]) + base + rest
+
+        # skin relief: a smooth random displacement of the segment surface
+        band = np.flatnonzero(np.abs(A) < 3 * h + amp)
+        A.flat[band] += np.float32(amp) * grid.noise(to_grid(band), bp["noise_seed"], (80.0, 250.0))
+        del band
+        # fat thickness varies by +-fat_noise (relative), smoothly
+        inner = np.flatnonzero((A < 0) & (A > -(np.float32(1.0 + 2.0 * float(bp["fat_noise"])) * f + 10.0)))
+        f.flat[inner] *= 1.0 + np.float32(bp["fat_noise"]) * np.clip(
+            grid.noise(to_grid(inner), bp["noise_seed"] + 1, (60.0, 200.0)), -2.0, 2.0)
+        del inner
+        # distance to the bone surfaces: near bones (within the largest margin) and not deep in the body,
+        # where neither the skin nor the fascia can come near a bone
+        h0, h1 = max(0, y0 - r), min(shape[1], y1 + r)
+        near = ndimage.maximum_filter(occ[:, h0:h1], size=2 * r + 1)[:, y0 - h0:y1 - h0]
+        near &= A > -(f + np.float32(R))
+        cand = np.flatnonzero(near)
+        del near
+        Bd = np.empty(len(cand), dtype=np.float32)
+        idx = np.empty(len(cand), dtype=np.int64)
+        for i0 in range(0, len(cand), 500_000):
+            d, j = tree.query(grid.points(to_grid(cand[i0:i0 + 500_000])), distance_upper_bound=R, workers=-1)
+            j[~np.isfinite(d)] = 0
+            Bd[i0:i0 + 500_000] = np.minimum(d, R)
+            idx[i0:i0 + 500_000] = j
+        m_skin = np.where(Bd < R, smp.m_skin[idx], 0.0).astype(np.float32)
+        A.flat[cand] = _smin(A.flat[cand], Bd - m_skin, np.float32(3.0))
+        # the fascia's bone term, applied once the skin has no cavities
+        cand_all.append(to_grid(cand))
+        bm_all.append(Bd - np.where(Bd < R, smp.m_mus[idx], 0.0).astype(np.float32))
+        n_cand += len(cand)
+        S[:, y0:y1] = A
+        Fat[:, y0:y1] = f
+        del A, f, cand, Bd, idx, m_skin
+        t_bone += time.perf_counter() - ts
+    del occ, tree
+    release_memory()
+    timings["segments"] = t_seg
+    timings["bone_candidates"] = float(n_cand)
+    timings["bone_distance"] = t_bone
     t0 = time.perf_counter()
-    # skin relief: a smooth random displacement of the segment surface
-    amp = float(bp["skin_noise_mm"])
-    band = np.flatnonzero(np.abs(A) < 3 * h + amp)
-    A.flat[band] += np.float32(amp) * grid.noise(band, bp["noise_seed"], (80.0, 250.0))
-    del band
-    # fat thickness varies by +-fat_noise (relative), smoothly
-    inner = np.flatnonzero((A < 0) & (A > -(np.float32(1.0 + 2.0 * float(bp["fat_noise"])) * f + 10.0)))
-    f.flat[inner] *= 1.0 + np.float32(bp["fat_noise"]) * np.clip(grid.noise(inner, bp["noise_seed"] + 1, (60.0, 200.0)),
-                                                                 -2.0, 2.0)
-    del inner
-    # distance to the bone surfaces: near bones (within the largest margin) and not deep in the body,
-    # where neither the skin nor the fascia can come near a bone
-    R = float(smp.m_skin.max()) + 4.0
-    ijk = np.round((W - origin) / h).astype(np.int64)
-    occ = np.zeros(shape, dtype=np.uint8)
-    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
-    r = int(math.ceil(R / h))
-    near = ndimage.maximum_filter(occ, size=2 * r + 1)
-    del occ
-    # the shells change the skin only where A > -(m_skin + k) and the fascia only where A > -(f + m_mus)
-    for i0 in range(0, shape[0], 16):       # in slabs: no grid-sized temporaries
-        near[i0:i0 + 16] &= A[i0:i0 + 16] > -(f[i0:i0 + 16] + np.float32(R))
-    cand = np.flatnonzero(near)
-    timings["bone_candidates"] = float(len(cand))
-    del near
-    tree = cKDTree(W)
-    Bd = np.empty(len(cand), dtype=np.float32)
-    idx = np.empty(len(cand), dtype=np.int64)
-    for i0 in range(0, len(cand), 500_000):
-        d, j = tree.query(grid.points(cand[i0:i0 + 500_000]), distance_upper_bound=R, workers=-1)
-        j[~np.isfinite(d)] = 0
-        Bd[i0:i0 + 500_000] = np.minimum(d, R)
-        idx[i0:i0 + 500_000] = j
-    timings["bone_distance"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    m_skin = np.where(Bd < R, smp.m_skin[idx], 0.0).astype(np.float32)
-    m_mus = np.where(Bd < R, smp.m_mus[idx], 0.0).astype(np.float32)
-    S = A
-    S.flat[cand] = _smin(S.flat[cand], Bd - m_skin, np.float32(3.0))
     _fill_cavities(S, -h)
-    Mu = f                                    # in place: fascia = skin offset inward by the fat
-    Mu += S
-    del f
-    Mu.flat[cand] = np.minimum(Mu.flat[cand], Bd - m_mus)
+    cand = np.concatenate(cand_all)
+    bm = np.concatenate(bm_all)
+    del cand_all, bm_all
     fmin = np.float32(_f_min(h))
-    for i0 in range(0, shape[0], 16):
-        np.maximum(Mu[i0:i0 + 16], S[i0:i0 + 16] + fmin, out=Mu[i0:i0 + 16])
+    Mu = Fat                                  # in place: fascia = skin offset inward by the fat
+    for y0, y1 in _y_slabs(shape):
+        s32 = S[:, y0:y1].astype(np.float32)
+        mu = Fat[:, y0:y1].astype(np.float32)
+        mu += s32
+        Mu[:, y0:y1] = mu
+        del s32, mu
+    # the bone term at the candidates: min(fascia, bone distance - muscle margin)
+    Mu.flat[cand] = np.minimum(Mu.flat[cand].astype(np.float32), bm)
+    del cand, bm
+    for y0, y1 in _y_slabs(shape):
+        np.maximum(Mu[:, y0:y1], (S[:, y0:y1].astype(np.float32) + fmin).astype(np.float16), out=Mu[:, y0:y1])
     _fill_cavities(Mu, -h)
     for grid_field in (S, Mu):                # an outside border, so that every surface closes
         for ax in range(3):
-            grid_field.swapaxes(0, ax)[[0, -1]] = np.float32(1e4)
+            grid_field.swapaxes(0, ax)[[0, -1]] = np.float16(1e4)
     timings["layers"] = time.perf_counter() - t0
     return S, Mu, origin, h
 
 
-def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, taubin: int, what: str) -> Mesh:
-    """Zero level set of ``field`` (negative inside) as a smoothed, decimated, watertight mesh."""
-    import trimesh
+def _marching_cubes_slabs(field: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Zero level set of a (float16) grid, in slabs along axis 1; vertices in voxel units.
+
+    Adjacent slabs share one layer of voxels: the vertices on it come out identical
+    from both (same values, integer coordinates across) and are merged, so the
+    result is the marching-cubes surface of the whole grid with float32 copies of
+    one slab at a time.
+    """
     from skimage.measure import marching_cubes
 
-    verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h), allow_degenerate=False)
+    V, F = [], []
+    nv = 0
+    for y0, y1 in _y_slabs(field.shape):
+        y1 = min(y1 + 1, field.shape[1])          # overlap one layer with the next slab
+        if y1 - y0 < 2:
+            continue
+        sub = field[:, y0:y1].astype(np.float32)
+        if sub.min() >= 0 or sub.max() < 0:
+            continue
+        # grid values at the level (float16 rounds more of them to exactly 0) give coincident
+        # vertices that merge into non-manifold edges: push them 1e-3 mm off it
+        at = np.abs(sub) < np.float32(1e-3)
+        sub[at] = np.where(sub[at] >= 0, np.float32(1e-3), np.float32(-1e-3))
+        v, f, _, _ = marching_cubes(sub, level=0.0, allow_degenerate=False)
+        v[:, 1] += y0
+        V.append(v)
+        F.append(f + nv)
+        nv += len(v)
+    V = np.concatenate(V)
+    F = np.concatenate(F)
+    # merge the duplicates of the shared layers (exactly equal coordinates)
+    _, first, inv = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    order = np.sort(first)
+    remap = np.empty(len(first), dtype=np.int64)
+    remap[np.argsort(first)] = np.arange(len(first))
+    # vertex i -> its unique row -> that row's new index, keeping the first occurrence's order
+    F = remap[inv.ravel()][F]
+    return V[order].astype(np.float64), F
+
+
+def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, taubin: int, what: str) -> Mesh:
+    """Zero level set of ``field`` (negative inside, model frame) as a smoothed, decimated, watertight mesh."""
+    import trimesh
+
+    verts, faces = _marching_cubes_slabs(field, h)
+    verts *= h
     verts += origin
     tm = trimesh.Trimesh(verts, faces, process=False)
+    del verts, faces
     if taubin:
         trimesh.smoothing.filter_taubin(tm, lamb=0.5, nu=0.53, iterations=taubin)
     if len(tm.faces) > max_faces:
@@ -2170,10 +2302,11 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
 
     Notes
     -----
-    Cost on 2 cores: the body takes ~9-12 s and ~0.7 GB peak at the default
-    preset, ~2-3 s at ``tiny``; the generic skeleton itself takes ~15-30 s to
-    build, an OpenSim model ~0.5 s to read and vary. ``metadata["timings_s"]``
-    has the breakdown.
+    Cost on 2 cores (CPU time): the body takes ~10-12 s at the default preset
+    (its grid filled in slabs, kept as float16: ~75 MB for the two fields),
+    ~3-4 s at ``tiny``; the generic skeleton ~18 s to build at the default
+    preset and ~3 s at ``tiny`` (meshed 2.5x coarser), an OpenSim model ~0.5 s
+    to read and vary. ``metadata["timings_s"]`` has the breakdown (wall).
 
     References
     ----------
@@ -2188,7 +2321,9 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     if params is None:
         params = draw_subject_params(seed, stature_mm, generic)
     params = {**params, "preset": preset}
+    release_memory()
     sk = build_subject_skeleton(params, generic)
+    release_memory()
     timings["skeleton"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rng = np.random.default_rng([int(seed), 7])
@@ -2202,12 +2337,15 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     pose = _solve_pose(sk, smp, plan, params, bp["skin_noise_mm"] + 0.5 * h, rng)
     params["pose"] = pose
     timings["plan"] = time.perf_counter() - t0
+    release_memory()
     S, Mu, origin, h = _fields(sk, smp, plan, params, h, timings)
     t0 = time.perf_counter()
     skin = _extract(S, origin, h, int(cfg["skin_faces"]), int(cfg["taubin_iterations"]), "skin")
     del S
+    release_memory()
     muscle = _extract(Mu, origin, h, int(cfg["muscle_faces"]), int(cfg["taubin_iterations"]), "fascia")
     del Mu
+    release_memory()
     timings["meshes"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     el = {s: plan.joints.get(f"elbow_{s}") for s in "rl"}

@@ -1149,13 +1149,22 @@ def pose_trial(skeleton: Skeleton, table: JointTable, motion: TrialMotion, *, sk
         prev, nxt = np.maximum(frames - 1, 0), np.minimum(frames + 1, F - 1)
         for s in sides:
             idx, pts = feet[s]
-            W = np.concatenate([(T[:, i, :3, :3] @ p.T).transpose(0, 2, 1) + T[:, i, None, :3, 3]
-                                for i, p in zip(idx, pts)], axis=1)  # (F, P, 3)
-            low = np.argmin(W[..., 2], axis=1)
-            lows.append(W[frames, low, 2])
+            # heights only (F, P): the full (F, P, 3) lab positions took ~100 MB on the long trials
+            Z = np.concatenate([p @ T[:, i, 2, :3].T + T[:, i, 2, 3] for i, p in zip(idx, pts)], axis=0).T
+            low = np.argmin(Z, axis=1)
+            lows.append(Z[frames, low])
+            del Z
+            P_all = np.concatenate(pts)
+            bone_of = np.concatenate([np.full(len(p), i) for i, p in zip(idx, pts)])
+            P_low, b_low = P_all[low], bone_of[low]
+
+            def x_at(g):                          # lab x of each frame's lowest point at frames g
+                Tg = T[g, b_low, 0]               # (F, 4): first rows of the bones' poses
+                return np.einsum("fj,fj->f", Tg[:, :3], P_low) + Tg[:, 3]
+
             # forward velocity of the material point of the foot that is lowest now (the
             # contact point when the foot is on the floor: zero for rolling without slipping)
-            contact_vx.append((W[nxt, low, 0] - W[prev, low, 0]) / np.maximum(nxt - prev, 1) * RATE_HZ)
+            contact_vx.append((x_at(nxt) - x_at(prev)) / np.maximum(nxt - prev, 1) * RATE_HZ)
         lows = np.array(lows)
         # No foot may go below the floor and one always touches it. The gait curves are tuned so
         # that the lowest foot is the stance foot (swing clearance >= 0), so this is also "the
@@ -1318,59 +1327,12 @@ def _skin_normals(tm, tri: np.ndarray, points: np.ndarray) -> np.ndarray:
     return _unit(n)
 
 
-def _nearest_face_normals(mesh: Mesh, points: np.ndarray) -> np.ndarray:
-    """Outward normal of the bone surface nearest to each point (the rule of
-    :func:`~bonecap.markers.place_markers`).
-
-    Exact nearest triangle without an R-tree per bone: a triangle nearer than the nearest
-    vertex (distance ``d``) has all its vertices within ``d`` + the longest edge, so only the
-    triangles touching those vertices (a k-d tree query) are tested. Landmarks usually sit
-    exactly on a vertex, where several triangles are equally near: their normals are averaged
-    (``place_markers`` takes whichever its R-tree returns first, up to ~20 deg away on a bumpy
-    mesh)."""
-    import trimesh
-    from scipy.spatial import cKDTree
-
-    V, Fc = mesh.vertices, mesh.faces
-    tri_all = V[Fc]
-    edge = float(np.linalg.norm(tri_all - np.roll(tri_all, 1, axis=1), axis=2).max())
-    tree = cKDTree(V)
-    d_v, _ = tree.query(points)
-    out = np.zeros((len(points), 3))
-    for i, p in enumerate(points):
-        near_v = tree.query_ball_point(p, d_v[i] + edge + 1e-9)
-        cand = np.flatnonzero(np.isin(Fc, near_v).any(axis=1))
-        tri = tri_all[cand]
-        q = trimesh.triangles.closest_point(tri, np.repeat(p[None], len(cand), axis=0))
-        d = np.linalg.norm(q - p, axis=1)
-        near = d <= d.min() + 1e-6
-        n = np.cross(tri[near, 1] - tri[near, 0], tri[near, 2] - tri[near, 0])  # area-weighted
-        out[i] = _unit(n.sum(axis=0))
-    return out
-
-
 def _place_on_bones(marker_set: MarkerSet, skeleton: Skeleton, names: list[str]) -> np.ndarray:
-    """:func:`~bonecap.markers.place_markers` (landmark pushed ``offset_mm`` along the nearest bone
-    surface normal; a bone without a mesh uses the direction from its origin; ``location``
-    markers as given), with the faster nearest-triangle search and ties averaged
-    (:func:`_nearest_face_normals`). World frame, (M, 3)."""
-    world = np.zeros((len(names), 3))
-    by_bone: dict[str, list[int]] = {}
-    for i, n in enumerate(names):
-        by_bone.setdefault(marker_set.markers[n].bone, []).append(i)
-    for bone_name, idx in by_bone.items():
-        bone = skeleton.bones[bone_name]
-        defs = [marker_set.markers[names[i]] for i in idx]
-        local = np.array([m.location if m.location is not None else
-                          (bone.landmarks[m.landmark] if m.landmark in bone.landmarks
-                           else bone.joint_centres[m.landmark]) for m in defs], float)
-        offsets = np.array([0.0 if m.location is not None else m.offset_mm for m in defs])
-        if bone.mesh is not None and len(bone.mesh.faces) and np.any(offsets):
-            normals = _nearest_face_normals(bone.mesh, local)
-        else:
-            normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
-        world[idx] = _apply(bone.bone_to_world, local + offsets[:, None] * normals)
-    return world
+    """:func:`~bonecap.markers.place_markers` as an (M, 3) array, world frame (model, mm)."""
+    from bonecap.markers import place_markers
+
+    placed = place_markers(marker_set, skeleton, list(names))
+    return np.array([placed[n] for n in names], dtype=float).reshape(len(names), 3)
 
 
 def place_phantom_markers(marker_set: MarkerSet, skeleton: Skeleton, skin: Mesh | None = None, *,
@@ -1393,9 +1355,7 @@ def place_phantom_markers(marker_set: MarkerSet, skeleton: Skeleton, skin: Mesh 
         skin point nearest the bone-offset position. Location markers go to the nearest skin point
         plus the radius. Without a skin, the markers are where
         :func:`~bonecap.markers.place_markers` puts them (bone surface + the set's soft-tissue
-        offset), computed here with a k-d tree instead of an R-tree per bone (which took seconds
-        on the generic skeleton) and with the normals of equally near triangles averaged where
-        a landmark sits on a vertex (``place_markers`` takes an arbitrary one of them).
+        offset; it is called here).
     names : list of str, optional
         Default: ``marker_set.physical`` (no virtual, no optional markers).
     marker_radius_mm : float

@@ -315,18 +315,33 @@ def polygon_sdf_2d(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
     P = np.asarray(pts, float)
     V = np.asarray(poly, float)
     W = np.roll(V, -1, axis=0)
+    # coordinates as separate contiguous vectors: the per-edge work is a few fused passes
+    # over N values instead of (N, 2) matrix products (~3x faster on the plates' tables)
+    X = np.ascontiguousarray(P[:, 0])
+    Y = np.ascontiguousarray(P[:, 1])
     best = np.full(len(P), np.inf)
     inside = np.zeros(len(P), bool)
+    qx, qy, t, tmp = (np.empty(len(P)) for _ in range(4))
     for a, b in zip(V, W):
-        e = b - a
-        q = P - a
-        t = np.clip((q @ e) / max(float(e @ e), _EPS), 0.0, 1.0)
-        d = q - t[:, None] * e
-        np.minimum(best, np.einsum("ij,ij->i", d, d), out=best)
+        ex, ey = b - a
+        np.subtract(X, a[0], out=qx)
+        np.subtract(Y, a[1], out=qy)
+        np.multiply(qx, ex, out=t)
+        t += qy * ey
+        t *= 1.0 / max(ex * ex + ey * ey, _EPS)
+        np.clip(t, 0.0, 1.0, out=t)
+        # squared distance to the segment: |q - t e|^2
+        np.multiply(t, ex, out=tmp)
+        np.subtract(qx, tmp, out=qx)
+        np.multiply(t, ey, out=tmp)
+        np.subtract(qy, tmp, out=qy)
+        np.multiply(qx, qx, out=tmp)
+        tmp += qy * qy
+        np.minimum(best, tmp, out=best)
         # even-odd crossing rule
-        cond = (a[1] > P[:, 1]) != (b[1] > P[:, 1])
-        xint = a[0] + (P[:, 1] - a[1]) * e[0] / np.where(np.abs(e[1]) < _EPS, _EPS, e[1])
-        inside ^= cond & (P[:, 0] < xint)
+        cond = (a[1] > Y) != (b[1] > Y)
+        xint = a[0] + (Y - a[1]) * (ex / (ey if abs(ey) >= _EPS else _EPS))
+        inside ^= cond & (X < xint)
     d = np.sqrt(best)
     return np.where(inside, -d, d)
 
@@ -555,13 +570,18 @@ class ShapeBuilder:
         act = np.argwhere(active)
         if len(act):
             off = np.stack(np.meshgrid(np.arange(B), np.arange(B), np.arange(B), indexing="ij"), -1).reshape(-1, 3)
-            idx = act[:, None, :] * B + off[None, :, :]          # (nA, B^3, 3)
-            P = origin + v * idx
-            blo = origin + v * (act * B)
-            bhi = blo + v * (B - 1)
-            vals = self._eval_blocks(P, blo, bhi, band)
-            idx = idx.reshape(-1, 3)
-            F[idx[:, 0], idx[:, 1], idx[:, 2]] = vals.ravel()
+            # in chunks of blocks: every point's value depends on that point alone, and the
+            # primitives' float64 temporaries (~10 arrays of the chunk) stay at a few tens of MB
+            chunk = max(1, 262_144 // len(off))
+            for a0 in range(0, len(act), chunk):
+                ac = act[a0:a0 + chunk]
+                idx = ac[:, None, :] * B + off[None, :, :]          # (nA, B^3, 3)
+                P = origin + v * idx
+                blo = origin + v * (ac * B)
+                bhi = blo + v * (B - 1)
+                vals = self._eval_blocks(P, blo, bhi, band)
+                idx = idx.reshape(-1, 3)
+                F[idx[:, 0], idx[:, 1], idx[:, 2]] = vals.ravel()
         assert tuple(F.shape) == tuple(shape)
         return Field(F, origin, v)
 
