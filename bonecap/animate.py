@@ -135,7 +135,54 @@ def solve_trial(subject: Subject, names: list[str], measured: np.ndarray, *, rat
     else:
         raise ValueError(f"solver must be 'lsq' or 'paper', got {solver!r}")
     motion.marker_labels = list(names)
+    motion.valid = flag_unsupported(subject.skeleton, motion, bones, measured, max_gap_frames)
+    motion.transforms[~motion.valid] = np.nan
     return motion
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) of the runs of True in a 1-D mask."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def flag_unsupported(skeleton: Skeleton, motion: Motion, marker_bones: list[str], measured: np.ndarray,
+                     max_gap_frames: int) -> np.ndarray:
+    """Invalidate bones whose pose rests on markers that are missing for longer than ``max_gap_frames``.
+
+    A bone that loses markers so that fewer than two of its own remain is
+    held only by its joints; over a short gap that is a fair guess (and the
+    solver interpolates), over a long one it is not a measurement. Such runs
+    longer than ``max_gap_frames`` are flagged, and so are the same frames of
+    its descendants that carry fewer than three markers of their own (their
+    pose hangs on the flagged joint).
+
+    Returns
+    -------
+    ndarray of bool (F, B)
+        The new ``valid``.
+    """
+    valid = motion.valid.copy()
+    seen = np.isfinite(measured).all(axis=2)  # (F, M)
+    mb = np.asarray(marker_bones)
+    index = {b: i for i, b in enumerate(motion.bones)}
+    lost = np.zeros_like(valid)
+    for b, i in index.items():
+        cols = np.flatnonzero(mb == b)
+        if len(cols) == 0:
+            continue
+        n_seen = seen[:, cols].sum(axis=1)
+        weak = (n_seen < len(cols)) & (n_seen < 2)
+        for a, z in _runs(weak):
+            if z - a > max_gap_frames:
+                lost[a:z, i] = True
+    counts = {b: int((mb == b).sum()) for b in index}
+    for name in skeleton.names:  # parent first: a lost parent makes weak children lost
+        bone = skeleton.bones[name]
+        if name in index and bone.parent in index and counts.get(name, 0) < 3:
+            lost[:, index[name]] |= lost[:, index[bone.parent]]
+    valid &= ~lost
+    return valid
 
 
 def _joints(skeleton: Skeleton) -> list[tuple[str, str, str, np.ndarray]]:

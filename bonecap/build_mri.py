@@ -297,6 +297,59 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     return out
 
 
+def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[str, int]]:
+    """A user's bone label map (3D Slicer, ITK-SNAP, TotalSegmentator...) and its label -> bone table.
+
+    The table is looked for beside the map: ``<stem>.yaml`` / ``<stem>.json``,
+    then ``labels.yaml`` / ``labels.json`` in the same folder or the one
+    above (a phantom's ``truth/labels.json``). It maps bone names (the
+    template's) to label values, either at the top level or under ``ids``.
+
+    Returns
+    -------
+    pieces : list of (labels, affine)
+        One piece, voxel -> LPS.
+    ids : dict of str -> int
+    """
+    import json
+
+    import yaml
+
+    from bonecap.io.imaging import read_volumes
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such label map", path)
+    vols = read_volumes(path)
+    if len(vols) != 1:
+        raise InputError(f"a label map must be one volume, found {len(vols)}", path)
+    v = vols[0]
+    data = np.asarray(v.data)
+    if not np.allclose(data, np.round(data)):
+        raise DataError("not a label map: it holds non-integer values", path)
+    stem = path.name.split(".")[0]
+    candidates = [path.with_name(stem + ext) for ext in (".yaml", ".yml", ".json")]
+    candidates += [d / f"labels{ext}" for d in (path.parent, path.parent.parent) for ext in (".yaml", ".json")]
+    table_path = next((c for c in candidates if c.is_file()), None)
+    if table_path is None:
+        raise InputError(f"no label -> bone table beside the label map (looked for {stem}.yaml, {stem}.json, "
+                         f"labels.yaml, labels.json)", path)
+    try:
+        doc = yaml.safe_load(table_path.read_text()) if table_path.suffix != ".json" \
+            else json.loads(table_path.read_text())
+    except (yaml.YAMLError, json.JSONDecodeError) as exc:
+        raise InputError(f"unreadable label table ({type(exc).__name__})", table_path) from None
+    table = doc.get("ids", doc) if isinstance(doc, dict) else None
+    if not isinstance(table, dict) or not all(isinstance(i, int) for i in table.values()):
+        raise InputError("the label table must map bone names to integer labels (optionally under 'ids')",
+                         table_path)
+    present = set(np.unique(data.astype(np.int64)).tolist())
+    ids = {str(b): int(i) for b, i in table.items() if int(i) in present and int(i) > 0}
+    if not ids:
+        raise DataError(f"none of the table's labels occurs in the map ({table_path.name})", path)
+    return [(data.astype(np.int32), v.affine)], ids
+
+
 def load_seeds(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Seeds from YAML: ``bone: [[x, y, z], ...]`` in LPS mm (world), a point or a polyline."""
     import yaml
@@ -367,17 +420,19 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
 
     # 1. stations
     bar.set_postfix_str("stations")
-    vols = load_stations(mri)
-    try:
-        vols = order_stations(vols)
-        nominal_affines = [v.affine.copy() for v in vols]
-        if len(vols) > 1:
-            vols, reg_report = register_stations(vols)
-            vols, scales = normalise_intensity(vols)
-        else:
-            reg_report, scales = [], np.ones(1)
-    except ValueError as exc:
-        raise DataError(str(exc), mri[0] if len(mri) == 1 else None) from None
+    vols = load_stations(mri) if mri else []
+    reg_report: list = []
+    scales = np.ones(len(vols))
+    nominal_affines = [v.affine.copy() for v in vols]
+    if vols:
+        try:
+            vols = order_stations(vols)
+            nominal_affines = [v.affine.copy() for v in vols]
+            if len(vols) > 1:
+                vols, reg_report = register_stations(vols)
+                vols, scales = normalise_intensity(vols)
+        except ValueError as exc:
+            raise DataError(str(exc), mri[0] if len(mri) == 1 else None) from None
     lap("stations")
     bar.update()
 
@@ -385,40 +440,48 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     bar.set_postfix_str("skin")
     bodies = [segment_body(v) for v in vols]
     skin = mesh_from_slices([(b, v.affine) for b, v in zip(bodies, vols)], voxel_mm=4.0,
-                            target_faces=40000)
+                            target_faces=40000) if vols else None
     lap("skin")
     bar.update()
 
-    # 3. seeds from the template roughly aligned to the body
-    bar.set_postfix_str("seeds")
-    top, bottom, centre_at = _body_extent(vols, bodies)
     posed, align_report = None, {}
-    if seeds is not None:
-        seed_map = load_seeds(seeds)
+    if labels is not None:
+        # 3-4. the user's own segmentation replaces seeds and contours
+        bar.set_postfix_str("labels")
+        pieces, ids = load_label_map(labels)
+        lap("labels")
+        bar.update()
+        bar.update()
     else:
-        if not _covers_whole_body(vols, bodies):
-            raise DataError("the stations do not cover the whole body (head to feet), so the template cannot "
-                            "be placed from the body's extent: give --seeds SEEDS.yaml (bone -> LPS points)",
-                            mri[0])
-        posed, align_report = place_template(template, vols, bodies, top, bottom, centre_at)
-        seed_map = bone_seeds(posed, np.eye(4))
-    lap("seeds")
-    bar.update()
+        # 3. seeds from the template roughly aligned to the body
+        bar.set_postfix_str("seeds")
+        if seeds is not None:
+            seed_map = load_seeds(seeds)
+        else:
+            top, bottom, centre_at = _body_extent(vols, bodies)
+            if not _covers_whole_body(vols, bodies):
+                raise DataError("the stations do not cover the whole body (head to feet), so the template cannot "
+                                "be placed from the body's extent: give --seeds SEEDS.yaml (bone -> LPS points)",
+                                mri[0])
+            posed, align_report = place_template(template, vols, bodies, top, bottom, centre_at)
+            seed_map = bone_seeds(posed, np.eye(4))
+        lap("seeds")
+        bar.update()
 
-    # 4. bone contours per station
-    bar.set_postfix_str("bone contours")
-    pieces = []
-    ids: dict[str, int] = {}
-    for v, body in zip(vols, bodies):
-        lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False)
-        # one id space across stations
-        remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
-        for name, i in station_ids.items():
-            ids.setdefault(name, len(ids) + 1)
-            remap[i] = ids[name]
-        pieces.append((remap[lab], v.affine))
-    lap("bone contours")
-    bar.update()
+        # 4. bone contours per station
+        bar.set_postfix_str("bone contours")
+        pieces = []
+        ids: dict[str, int] = {}
+        for v, body in zip(vols, bodies):
+            lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False)
+            # one id space across stations
+            remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
+            for name, i in station_ids.items():
+                ids.setdefault(name, len(ids) + 1)
+                remap[i] = ids[name]
+            pieces.append((remap[lab], v.affine))
+        lap("bone contours")
+        bar.update()
 
     # 5. meshes
     bar.set_postfix_str("meshes")
@@ -435,6 +498,8 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         posed = _template_from_targets(template, extracted)
     targets = _plausible_targets(posed, extracted)
     personal, warp_report = warp_skeleton(posed, targets)
+    # the skull from the head's skin (its thin cortex escapes the slice rules)
+    skull_report = skull_from_skin(personal, posed, skin) if "skull" not in targets else None
     lap("warp")
     bar.update()
 
@@ -452,14 +517,19 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     if forearm_poses:
         bar.set_postfix_str("forearm")
         side = _stack_side(forearm_poses[0], personal)
-        model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side)
-        subject.forearm = {side: model}
+        try:
+            model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side)
+            subject.forearm = {side: model}
+        except DataError as exc:
+            # the stacks could not be read as three poses of this forearm: the
+            # paper's coefficients stay, and the report says why
+            forearm_report = {"used": False, "reason": str(exc), "capsules": forearm_capsules(forearm_poses)}
         lap("forearm")
     bar.close()
 
     report: dict[str, Any] = {
         "mode": "mri", "stations": reg_report, "intensity_scales": np.asarray(scales).tolist(),
-        "template_placement": align_report, "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report, **marker_report,
+        "template_placement": align_report, "skull_from_skin": skull_report, "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report, **marker_report,
         "timings_s": timings, "seconds": round(sum(timings.values()), 2),
     }
     if forearm_report is not None:
@@ -491,7 +561,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         # registered frame: open them over the DICOM in Slicer / ITK-SNAP, fix,
         # and pass them back with --labels
         stations = []
-        for n, ((lab, aff), v) in enumerate(zip(pieces, vols)):
+        for n, ((lab, aff), v) in enumerate(zip(pieces, vols)) if labels is None else ():
             rel = f"labels/station_{n + 1}.nii.gz"
             (folder / "labels").mkdir(parents=True, exist_ok=True)
             write_nifti(Volume(lab.astype(np.int16), aff), folder / rel)
@@ -621,7 +691,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         find_capsules = None
     capsule_names: dict[str, np.ndarray] = {}
     if find_capsules is not None:
-        found = [find_capsules(v, body_mask=b)[0] for v, b in zip(vols, bodies)]
+        found = [find_capsules(v)[0] for v in vols]
         centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
         if len(centres):
             capsule_names = match_capsules(centres, placed, max_distance_mm=25.0)
@@ -693,6 +763,17 @@ def _landmark(b, name: str, T: np.ndarray) -> np.ndarray | None:
     return None if p is None else T[:3, :3] @ p + T[:3, 3]
 
 
+def forearm_capsules(dirs) -> dict[str, list]:
+    """Capsule centres (LPS mm) found in each forearm stack, keyed by the stack's folder name."""
+    from bonecap.segmentation.capsules import find_capsules
+
+    out = {}
+    for d in dirs:
+        v = max(load_stations([d]), key=lambda x: x.data.size)
+        out[Path(d).name] = find_capsules(v)[0].tolist()
+    return out
+
+
 def _stack_side(path, personal: Skeleton) -> str:
     """Which forearm a stack shows: right when its centre lies on the body's right (LPS -x)."""
     v = load_stations([path])[0]
@@ -702,7 +783,7 @@ def _stack_side(path, personal: Skeleton) -> str:
 
 
 def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                            ) -> tuple[dict[str, Any], dict[str, Any]]:
+                            max_icp_mm: float = 4.0) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
     For each stack: the ulna and radius are segmented with the cortical rule
@@ -754,9 +835,12 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
             T, res = rigid_icp(pts, target)
             Ts[n] = T @ bone.bone_to_world
             report["stacks"].setdefault(str(d), {})[f"{n}_icp_mm"] = float(np.mean(res))
+            if np.mean(res) > max_icp_mm:
+                raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
+                                f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
         wrist = np.array([_landmark(Rb, "radial_styloid", Ts[radius_n]), _landmark(U, "ulnar_styloid", Ts[ulna_n])])
         poses.append((Ts[ulna_n], Ts[radius_n], wrist, np.array([lat, med])))
-        centres, _ = find_capsules(v, body_mask=body)
+        centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
         report["capsules"][Path(d).name] = centres.tolist()
     wr = np.array([p[2] for p in poses])
     el = np.array([p[3] for p in poses])
@@ -770,4 +854,87 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     out["side"] = side
     out["fitted_from"] = [str(d) for d in dirs]
     report["twists_deg"] = theta.tolist()
+    report["used"] = True
     return out, report
+
+
+def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
+                    max_residual_mm: float = 6.0) -> dict[str, Any] | None:
+    """Fit the skull (and mandible) to the head's skin (in place): what MRI bone contours miss.
+
+    The skull's cortex is thin and its marrow scant, so the slice rules do not
+    find it; the scalp over the cranial vault is thin and nearly uniform
+    (5–7 mm), so the vault of the placed template skull, pushed out by that
+    thickness along its normals, is registered to the skin of the head by an
+    affine ICP. The face and the neck are left out (their soft tissue is
+    thick and varied): only template vertices above the orbits and ear
+    canals (the upper 60 % of the skull's height) take part.
+
+    Returns
+    -------
+    dict or None
+        ICP residual and the affine, or ``None`` when the head is not imaged.
+    """
+    import trimesh
+
+    from bonecap.skeleton.warp import affine_icp, rigid_icp
+
+    if "skull" not in posed.bones or posed.bones["skull"].mesh is None or skin is None:
+        return None
+    sk_world = posed.world_mesh("skull")
+    tm = trimesh.Trimesh(sk_world.vertices, sk_world.faces, process=False)
+    z = tm.vertices[:, 2]
+    lo, hi = float(z.min()), float(z.max())
+    cut = lo + 0.4 * (hi - lo)
+    normals = tm.vertex_normals
+    vault = (z > cut) & (normals[:, 2] > -0.2)
+    src = tm.vertices[vault] + scalp_mm * normals[vault]
+    # the head's skin: everything above the skull's cut, within 40 mm of the vault's box
+    sv, sf = skin.vertices, skin.faces
+    keep_v = sv[:, 2] > cut - 10.0
+    if keep_v.sum() < 100:
+        return None
+    fz = keep_v[sf].all(axis=1)
+    head = Mesh(sv, sf[fz], "lps")
+    T0, _ = rigid_icp(src, head)
+    T, res = affine_icp(src, head, T0)
+    A = T  # template-placed skull -> personal (world)
+    out = {"icp_residual_mean_mm": float(np.mean(res)), "affine": A.tolist(), "scalp_mm": scalp_mm}
+    sv3 = np.linalg.svd(A[:3, :3], compute_uv=False)
+    if np.mean(res) > max_residual_mm or sv3.max() > 1.3 or sv3.min() < 0.7:
+        # the head's skin did not take the vault (neck or shoulders caught, a
+        # truncated head): keep the skull the warp carried, and say so
+        out["used"] = False
+        out["reason"] = (f"ICP residual {np.mean(res):.1f} mm or stretch {sv3.min():.2f}-{sv3.max():.2f} "
+                         f"out of bounds")
+        return out
+    out["used"] = True
+    from bonecap.model import Bone
+
+    # the rigid part of A keeps the ISB frame; the rest reshapes the mesh
+    U, _, Vt = np.linalg.svd(A[:3, :3])
+    R = U @ Vt
+    for name in ("skull", "mandible"):
+        pb = posed.bones.get(name)
+        if pb is None:
+            continue
+        T_new = np.eye(4)
+        T_new[:3, :3] = R @ pb.bone_to_world[:3, :3]
+        T_new[:3, 3] = A[:3, :3] @ pb.bone_to_world[:3, 3] + A[:3, 3]
+        inv = np.linalg.inv(T_new)
+
+        def move(p_local: np.ndarray, _pb=pb, _inv=inv) -> np.ndarray:
+            w = p_local @ _pb.bone_to_world[:3, :3].T + _pb.bone_to_world[:3, 3]
+            w = w @ A[:3, :3].T + A[:3, 3]
+            return w @ _inv[:3, :3].T + _inv[:3, 3]
+
+        mesh = Mesh(move(pb.mesh.vertices), pb.mesh.faces.copy(), name) if pb.mesh is not None else None
+        inner = Mesh(move(pb.inner_mesh.vertices), pb.inner_mesh.faces.copy(), name) \
+            if pb.inner_mesh is not None else None
+        personal.bones[name] = Bone(
+            name, personal.bones[name].parent, mesh, T_new,
+            joint_centres={k: move(v[None])[0] for k, v in pb.joint_centres.items()},
+            joint_axes=dict(pb.joint_axes),  # frame-relative: unchanged by the rigid part
+            landmarks={k: move(v[None])[0] for k, v in pb.landmarks.items()}, inner_mesh=inner,
+            metadata={**pb.metadata, "source": "template fitted to the head's skin"})
+    return out

@@ -36,8 +36,22 @@ from bonecap.subject import MarkerBinding, Subject
 __all__ = ["static_markers", "pose_to_static", "bind_static", "build_from_static"]
 
 
-def static_markers(trial: Trial, marker_set: MarkerSet, *, path: str | os.PathLike | None = None
-                   ) -> tuple[list[str], np.ndarray]:
+def parse_frames(spec: str | None, n_frames: int) -> slice:
+    """``"START:STOP"`` (0-based, STOP exclusive, either may be empty) -> a slice, checked against the trial."""
+    if not spec:
+        return slice(None)
+    try:
+        a, b = (int(x) if x.strip() else None for x in spec.split(":"))
+    except ValueError:
+        raise InputError(f"--static-frames takes START:STOP (0-based frame indices), got {spec!r}") from None
+    sl = slice(a, b)
+    if len(range(n_frames)[sl]) == 0:
+        raise InputError(f"--static-frames {spec} selects no frame of a {n_frames}-frame trial")
+    return sl
+
+
+def static_markers(trial: Trial, marker_set: MarkerSet, *, path: str | os.PathLike | None = None,
+                   frames: slice = slice(None)) -> tuple[list[str], np.ndarray]:
     """The marker set's markers in a static trial, averaged over its frames.
 
     The median over frames (not the mean) so that a few mislabelled or
@@ -60,14 +74,14 @@ def static_markers(trial: Trial, marker_set: MarkerSet, *, path: str | os.PathLi
     for name in marker_set.markers:
         if name in found and not marker_set.markers[name].virtual:
             j = trial.labels.index(found[name])
-            if np.isfinite(trial.points[:, j]).all(axis=1).any():
+            if np.isfinite(trial.points[frames, j]).all(axis=1).any():
                 names.append(name)
                 cols.append(j)
     if len(names) < 6:
         raise DataError(f"only {len(names)} markers of the set {marker_set.name!r} are seen in the static trial "
                         f"(labels: {', '.join(trial.labels[:12])}{'...' if len(trial.labels) > 12 else ''})",
                         path)
-    pos = np.nanmedian(trial.points[:, cols], axis=0)
+    pos = np.nanmedian(trial.points[frames][:, cols], axis=0)
     return names, pos
 
 
@@ -210,7 +224,7 @@ def bind_static(skeleton: Skeleton, names: list[str], marker_bones: list[str], s
 
 def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike = "default",
                       marker_set: str | os.PathLike | None = None, subject_name: str | None = None,
-                      iterations: int = 3) -> tuple[Subject, dict[str, Any]]:
+                      iterations: int = 3, static_frames: str | None = None) -> tuple[Subject, dict[str, Any]]:
     """Scale the template to a static trial and bind its markers (no MRI).
 
     Parameters
@@ -240,7 +254,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     mset = load_marker_set(marker_set) if marker_set else template_marker_set(generic)
     check_marker_set(mset, template)
     trial = read_c3d(static, subject=subject_name)
-    names, lab = static_markers(trial, mset, path=static)
+    names, lab = static_markers(trial, mset, path=static, frames=parse_frames(static_frames, trial.n_frames))
     bones = [mset.markers[n].bone for n in names]
 
     # A global similarity first: the lab's scale and the subject's stature.
@@ -323,8 +337,8 @@ def _summary(report: dict[str, Any], out_dir: Path) -> str:
 def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, generic: str | os.PathLike = "default",
                       marker_set: str | os.PathLike | None = None, static: str | os.PathLike | None = None,
                       forearm_poses: list[str] | None = None, seeds: str | os.PathLike | None = None,
-                      labels: str | os.PathLike | None = None, subject_name: str | None = None
-                      ) -> dict[str, Any]:
+                      labels: str | os.PathLike | None = None, subject_name: str | None = None,
+                      static_frames: str | None = None) -> dict[str, Any]:
     """The ``build-subject`` command: build and write a subject folder.
 
     The folder is assembled in a temporary folder beside ``out_dir`` and
@@ -348,7 +362,7 @@ def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, gene
         if forearm_poses:
             raise InputError("--forearm-poses needs the MRI stations too", out_dir)
         subject, report = build_from_static(static, generic=generic, marker_set=marker_set,
-                                            subject_name=subject_name)
+                                            subject_name=subject_name, static_frames=static_frames)
         qc = None
     else:
         from bonecap.build_mri import build_from_mri

@@ -70,7 +70,7 @@ def _cmd_build_subject(args: argparse.Namespace) -> int:
 
     report = run_build_subject(args.mri, args.out_dir, generic=args.generic, marker_set=args.marker_set,
                                static=args.static, forearm_poses=args.forearm_poses, seeds=args.seeds,
-                               labels=args.labels, subject_name=args.subject)
+                               labels=args.labels, subject_name=args.subject, static_frames=args.static_frames)
     print(report["summary"])
     return 0
 
@@ -172,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--marker-set", metavar="NAME|FILE.yaml",
                    help="marker set (default: Kojima's set for MRI subjects, the template's otherwise)")
     p.add_argument("--static", metavar="STATIC.c3d", help="static trial: pose the skeleton and bind the markers")
+    p.add_argument("--static-frames", metavar="START:STOP",
+                   help="frames of --static to average (0-based, STOP excluded; default all), e.g. the quiet "
+                   "stance at the start of a movement trial when there is no static trial")
     p.add_argument("--forearm-poses", nargs=3, metavar="DIR", help="three forearm stacks (about 0/90/180 deg)")
     p.add_argument("--seeds", metavar="SEEDS.yaml", help="bone seeds in world mm (override the template's)")
     p.add_argument("--labels", metavar="LABELMAP", help="your own bone label map (skips contour extraction)")

@@ -14,8 +14,12 @@ Stages run today:
 5. **Phantom**: a reduced synthetic subject (``bonecap phantom --preset
    tiny``): a varied skeleton and body, MRI stations and forearm stacks,
    trials, and their truth.
+6. **build-subject** on the phantom's MRI stations, its static trial and its
+   three forearm stacks: the personal skeleton with bound markers.
+7. **animate** the phantom's trials with that subject.
+8. **evaluate** both against the phantom's truth.
 
-Each later stage (phantom, build-subject, animate) extends this module.
+Stages 6-8 need the phantom (skipped with ``phantom=False``).
 """
 
 from __future__ import annotations
@@ -90,7 +94,7 @@ def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default",
     """
     out = Path(out_dir)
     report: dict[str, Any] = {"generic": str(generic), "outputs": {}}
-    bar = stage_bar(5, "demo")
+    bar = stage_bar(8 if phantom else 5, "demo")
 
     # 1. Template and its meshes.
     bar.set_postfix_str("template")
@@ -172,11 +176,52 @@ def run_demo(out_dir: str | os.PathLike, generic: str | os.PathLike = "default",
                              "trials": ph["trials"], "seconds": round(sum(ph["timings_s"].values()), 1)}
         report["outputs"]["phantom"] = str(out / "phantom")
     bar.update()
+    if phantom:
+        _subject_and_motion(out, report, bar)
     bar.close()
     with atomic_path(out / "report.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2))
     report["outputs"]["report"] = str(out / "report.json")
     return report
+
+
+def _subject_and_motion(out: Path, report: dict[str, Any], bar) -> None:
+    """Stages 6-8: build-subject, animate and evaluate on the demo phantom."""
+    import time
+
+    from bonecap.animate import animate
+    from bonecap.build_subject import run_build_subject
+    from bonecap.evaluate import evaluate_motion, evaluate_subject
+
+    ph = out / "phantom"
+    bar.set_postfix_str("build-subject")
+    t0 = time.perf_counter()
+    stations = sorted(str(p) for p in (ph / "mri").glob("station_*"))
+    forearm = sorted((str(p) for p in (ph / "mri").glob("forearm_*")), key=lambda x: float(x.rsplit("_", 1)[1]))
+    built = run_build_subject(stations, out / "subject", static=ph / "trials" / "static.c3d",
+                              forearm_poses=forearm)
+    report["subject"] = {"bones": built["bones"], "markers_bound": built["markers_bound"],
+                         "extracted_bones": len(built["extracted_bones"]),
+                         "forearm_twists_deg": (built.get("forearm") or {}).get("twists_deg"),
+                         "seconds": round(time.perf_counter() - t0, 1)}
+    report["outputs"]["subject"] = str(out / "subject")
+    bar.update()
+    bar.set_postfix_str("animate")
+    trials = sorted(str(p) for p in (ph / "trials").glob("*.c3d"))
+    anim = animate(out / "subject", trials, out / "animate")
+    report["animate"] = {t: {"frames": r["frames"], "valid_share": round(r["valid_share"], 3),
+                             "residual_median_mm": r["residual_median_mm"]} for t, r in anim["trials"].items()}
+    report["outputs"]["animate"] = str(out / "animate")
+    bar.update()
+    bar.set_postfix_str("evaluate")
+    ev_s = evaluate_subject(out / "subject", ph / "truth")
+    ev_m = evaluate_motion(out / "animate", ph / "truth")
+    deg = [v["deg_median"] for v in ev_m["overall"].values()]
+    report["evaluation"] = {"subject": ev_s["summary"],
+                            "motion": {"bones": len(deg), "deg_median_over_bones": float(np.median(deg)),
+                                       "mm_median_over_bones": float(np.median(
+                                           [v["mm_median"] for v in ev_m["overall"].values()]))}}
+    bar.update()
 
 
 def format_report(report: dict[str, Any]) -> str:
@@ -200,5 +245,16 @@ def format_report(report: dict[str, Any]) -> str:
         lines.append(f"phantom (seed {p['seed']}, {p['preset']}): stature {p['stature_mm']:.0f} mm, "
                      f"{p['stations']} MRI stations, forearm stacks at {', '.join(p['forearm_stacks'])} deg, "
                      f"trials {', '.join(p['trials'])} -> {o['phantom']} ({p['seconds']} s)")
+    if "subject" in report:
+        sb, ev = report["subject"], report["evaluation"]
+        lines.append(f"build-subject: {sb['bones']} bones ({sb['extracted_bones']} extracted from the MRI), "
+                     f"{sb['markers_bound']} markers bound -> {o['subject']} ({sb['seconds']} s)")
+        lines.append(f"animate: {', '.join(report['animate'])} -> {o['animate']}")
+        es, em = ev["subject"], ev["motion"]
+        fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
+        lines.append(f"evaluate vs truth: Dice median {fmt(es.get('dice'))} (oracle {fmt(es.get('oracle_dice'))}), "
+                     f"personal surface {fmt(es.get('personal_surface_mean_mm'))} mm, "
+                     f"bone orientation median {em['deg_median_over_bones']:.2f} deg, "
+                     f"origin {em['mm_median_over_bones']:.1f} mm")
     lines.append(f"report: {o['report']}")
     return "\n".join(lines)
