@@ -4,7 +4,9 @@ Usage: ``python benchmarks/bench_phantom.py [--preset default|tiny|both] [--seed
 
 Each run is a fresh ``python -m bonecap phantom`` process (imports included, as a user runs it),
 so its peak resident memory is its own: ``ru_maxrss`` of the finished child (the largest of the
-process and the meshing workers it forks). Prints a markdown table: wall time, user + system CPU
+process, the meshing workers it forks and the interpreter that decimates the body surfaces at the
+default preset; those run while the main process waits, so add them for the machine's total at
+that moment). Prints a markdown table: wall time, user + system CPU
 (the machine is shared, so wall times vary with the load; CPU time much less), peak RSS, the
 stage timings from ``phantom.json`` and the load average before the run.
 """

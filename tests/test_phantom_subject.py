@@ -303,3 +303,31 @@ def test_slab_marching_cubes_equals_the_whole_grid(monkeypatch):
     assert np.abs(np.sort(v, axis=0) - np.sort(ref_v, axis=0)).max() < 2e-3        # the same surface
     true_volume = 4.0 / 3.0 * np.pi * (8.0 ** 3 + 6.5 ** 3)
     assert abs(abs(tm.volume) / true_volume - 1.0) < 0.02
+
+
+def test_body_smoothing_and_decimation_helpers_match_the_libraries():
+    """``_taubin`` is trimesh's equal-weight Taubin filter; ``_simplify`` in a child process returns
+    what fast_simplification returns in this one (the body meshes must not depend on where it ran)."""
+    import fast_simplification
+
+    from bonecap.phantom import subject as subj
+
+    tm = trimesh.creation.icosphere(subdivisions=5, radius=50.0)
+    tm.vertices += np.random.default_rng(0).normal(scale=1.0, size=tm.vertices.shape)
+    ref = tm.copy()
+    trimesh.smoothing.filter_taubin(ref, lamb=0.5, nu=0.53, iterations=6)
+    V = subj._taubin(np.asarray(tm.vertices), np.asarray(tm.faces), 0.5, 0.53, 6)
+    assert np.abs(V - tm.vertices).max() > 0.1                 # it did smooth
+    assert np.allclose(V, ref.vertices, atol=1e-9)
+
+    v32 = np.asarray(tm.vertices, np.float32)
+    f = np.asarray(tm.faces)
+    a = fast_simplification.simplify(v32, f, target_reduction=0.7)
+    old = subj._SIMPLIFY_IN_CHILD_FACES
+    try:
+        subj._SIMPLIFY_IN_CHILD_FACES = 1000                    # force the child process
+        b = subj._simplify(v32, f, 0.7)
+    finally:
+        subj._SIMPLIFY_IN_CHILD_FACES = old
+    assert len(b[1]) < 0.4 * len(f)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])

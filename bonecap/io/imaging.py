@@ -93,9 +93,10 @@ never leaves a partial output.
 
 from __future__ import annotations
 
-import gzip
+import io
 import math
 import os
+import zlib
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -895,67 +896,108 @@ def write_dicom_series(volume: Volume, folder: str | os.PathLike, *, series_desc
 
     folder = Path(folder)
     names = [f"IM{k + 1:05d}.dcm" for k in range(K)]
+
+    def header(k: int, sop_uid: str) -> tuple[Dataset, FileMetaDataset]:
+        fm = FileMetaDataset()
+        fm.MediaStorageSOPClassUID = sop_class
+        fm.MediaStorageSOPInstanceUID = sop_uid
+        fm.TransferSyntaxUID = UID(TRANSFER_SYNTAXES["explicit_little"])
+        fm.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
+        ds = Dataset()
+        ds.file_meta = fm
+        ds.SpecificCharacterSet = "ISO_IR 100"
+        ds.ImageType = ["DERIVED", "SECONDARY"]
+        ds.SOPClassUID = sop_class
+        ds.SOPInstanceUID = sop_uid
+        ds.Modality = modality
+        ds.SeriesDescription = series_description
+        ds.Manufacturer = "bonecap"
+        ds.PatientName = str(meta.get("patient_name", ""))
+        ds.PatientID = str(meta.get("patient_id", ""))
+        ds.StudyInstanceUID = study_uid
+        ds.SeriesInstanceUID = series_uid
+        ds.FrameOfReferenceUID = frame_of_reference_uid
+        ds.SeriesNumber = int(series_number)
+        ds.InstanceNumber = k + 1
+        ds.PositionReferenceIndicator = ""
+        if modality.upper() == "MR":
+            ds.ScanningSequence = "RM"  # research mode: a synthetic or derived image
+            ds.SequenceVariant = "NONE"
+            ds.MRAcquisitionType = "3D"
+        if meta.get("echo_number") is not None:
+            ds.EchoNumbers = meta["echo_number"]
+        if meta.get("echo_time") is not None:
+            ds.EchoTime = _ds(meta["echo_time"])
+        if meta.get("acquisition_number") is not None:
+            ds.AcquisitionNumber = int(meta["acquisition_number"])
+        position = origin + k * step
+        ds.ImagePositionPatient = [_ds(v) for v in position]
+        ds.ImageOrientationPatient = [_ds(v) for v in np.concatenate([row_dir, col_dir])]
+        ds.PixelSpacing = [_ds(spacing[1]), _ds(spacing[0])]  # (between rows, between columns)
+        ds.SliceThickness = _ds(thickness)
+        ds.SpacingBetweenSlices = _ds(spacing[2])
+        ds.SliceLocation = _ds(position @ normal)
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.Rows = J
+        ds.Columns = I
+        ds.BitsAllocated = 16
+        ds.BitsStored = 16
+        ds.HighBit = 15
+        ds.PixelRepresentation = 1 if signed else 0
+        if rescale:
+            ds.RescaleIntercept = _ds(intercept)
+            ds.RescaleSlope = _ds(slope)
+            ds.RescaleType = "HU" if modality.upper() == "CT" else "US"
+        ds.WindowCenter = _ds((lo + hi) / 2)
+        ds.WindowWidth = _ds(max(hi - lo, 1.0))
+        return ds, fm
+
+    def plane(k: int) -> np.ndarray:
+        p = np.ascontiguousarray(stored[:, :, k].T)  # (rows = j, columns = i)
+        return p.astype(p.dtype.newbyteorder("<"), copy=False)
+
     with atomic_path(folder, directory=True) as tmp:
-        for k in range(K):
-            sop_uid = generate_uid()
+        if syntax != UID(TRANSFER_SYNTAXES["explicit_little"]):
+            for k in range(K):
+                ds, fm = header(k, generate_uid())
+                px = plane(k)
+                ds.PixelData = px.tobytes()
+                ds.compress(syntax, px, encoding_plugin="pylibjpeg", generate_instance_uid=False)
+                ds.save_as(tmp / names[k], enforce_file_format=True)
+        else:
+            # Uncompressed: every slice's header is the first one's but for five elements. The
+            # first is encoded once and read back: its elements stay raw (already encoded bytes),
+            # so each save_as below re-encodes only the elements set here (building and encoding
+            # ~45 elements per file was most of the time of a large series). The bytes are those
+            # of a dataset built from scratch (tests/test_io_imaging.py checks it).
+            from pydicom import dcmread
+            from pydicom.dataelem import DataElement
+            from pydicom.filewriter import dcmwrite
+
+            uids = [generate_uid() for _ in range(K)]
+            ds0, _ = header(0, uids[0])
+            ds0.PixelData = plane(0).tobytes()
+            buf = io.BytesIO()
+            dcmwrite(buf, ds0, enforce_file_format=True)
+            del ds0
+            buf.seek(0)
+            ds = dcmread(buf)
+            # dcmwrite deep-copies the file meta on every call: a plain one copies in a few µs,
+            # the one read back (raw elements tied to its buffer) took ~1 ms
             fm = FileMetaDataset()
-            fm.MediaStorageSOPClassUID = sop_class
-            fm.MediaStorageSOPInstanceUID = sop_uid
-            fm.TransferSyntaxUID = UID(TRANSFER_SYNTAXES["explicit_little"])
-            fm.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
-            ds = Dataset()
+            for elem in ds.file_meta:
+                fm.add(DataElement(elem.tag, elem.VR, elem.value))
             ds.file_meta = fm
-            ds.SpecificCharacterSet = "ISO_IR 100"
-            ds.ImageType = ["DERIVED", "SECONDARY"]
-            ds.SOPClassUID = sop_class
-            ds.SOPInstanceUID = sop_uid
-            ds.Modality = modality
-            ds.SeriesDescription = series_description
-            ds.Manufacturer = "bonecap"
-            ds.PatientName = str(meta.get("patient_name", ""))
-            ds.PatientID = str(meta.get("patient_id", ""))
-            ds.StudyInstanceUID = study_uid
-            ds.SeriesInstanceUID = series_uid
-            ds.FrameOfReferenceUID = frame_of_reference_uid
-            ds.SeriesNumber = int(series_number)
-            ds.InstanceNumber = k + 1
-            ds.PositionReferenceIndicator = ""
-            if modality.upper() == "MR":
-                ds.ScanningSequence = "RM"  # research mode: a synthetic or derived image
-                ds.SequenceVariant = "NONE"
-                ds.MRAcquisitionType = "3D"
-            if meta.get("echo_number") is not None:
-                ds.EchoNumbers = meta["echo_number"]
-            if meta.get("echo_time") is not None:
-                ds.EchoTime = _ds(meta["echo_time"])
-            if meta.get("acquisition_number") is not None:
-                ds.AcquisitionNumber = int(meta["acquisition_number"])
-            position = origin + k * step
-            ds.ImagePositionPatient = [_ds(v) for v in position]
-            ds.ImageOrientationPatient = [_ds(v) for v in np.concatenate([row_dir, col_dir])]
-            ds.PixelSpacing = [_ds(spacing[1]), _ds(spacing[0])]  # (between rows, between columns)
-            ds.SliceThickness = _ds(thickness)
-            ds.SpacingBetweenSlices = _ds(spacing[2])
-            ds.SliceLocation = _ds(position @ normal)
-            ds.SamplesPerPixel = 1
-            ds.PhotometricInterpretation = "MONOCHROME2"
-            ds.Rows = J
-            ds.Columns = I
-            ds.BitsAllocated = 16
-            ds.BitsStored = 16
-            ds.HighBit = 15
-            ds.PixelRepresentation = 1 if signed else 0
-            if rescale:
-                ds.RescaleIntercept = _ds(intercept)
-                ds.RescaleSlope = _ds(slope)
-                ds.RescaleType = "HU" if modality.upper() == "CT" else "US"
-            ds.WindowCenter = _ds((lo + hi) / 2)
-            ds.WindowWidth = _ds(max(hi - lo, 1.0))
-            plane = np.ascontiguousarray(stored[:, :, k].T)  # (rows = j, columns = i)
-            ds.PixelData = plane.astype(plane.dtype.newbyteorder("<"), copy=False).tobytes()
-            if syntax != fm.TransferSyntaxUID:
-                ds.compress(syntax, plane, encoding_plugin="pylibjpeg", generate_instance_uid=False)
-            ds.save_as(tmp / names[k], enforce_file_format=True)
+            for k in range(K):
+                position = origin + k * step
+                ds.file_meta.MediaStorageSOPInstanceUID = uids[k]
+                ds.SOPInstanceUID = uids[k]
+                ds.InstanceNumber = k + 1
+                ds.ImagePositionPatient = [_ds(v) for v in position]
+                ds.SliceLocation = _ds(position @ normal)
+                ds.PixelData = plane(k).tobytes()
+                ds.save_as(tmp / names[k], enforce_file_format=True)
     return [folder / name for name in names]
 
 
@@ -998,28 +1040,161 @@ def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:
     (booleans become uint8, int64 becomes int32 when it fits); note that
     nibabel stores the sform as float32 (about 1e-5 mm at 100 mm).
     """
-    import nibabel as nib
+    from nibabel.fileholders import FileHolder
 
     path = Path(path)
     name = path.name.lower()
     if not name.endswith((".nii", ".nii.gz")):
         raise ValueError(f"NIfTI path must end in .nii or .nii.gz: {path}")
-    affine_ras = _RAS_TO_LPS @ volume.affine
-    img = nib.Nifti1Image(_nifti_ready(volume.data), affine_ras)
+    img = _nifti_image(_nifti_ready(volume.data), volume.affine)
+    # nibabel writes the header, then the data slab by slab: gzipped as it comes, only the
+    # compressed bytes are held (for a whole-body label grid ~0.5 MB instead of an encoded
+    # copy of the volume plus its gzip, ~100 MB more). The bytes are those of
+    # gzip.compress(img.to_bytes(), compresslevel=6, mtime=0): mtime 0, so the same volume
+    # always gives the same file.
+    chunks: list[bytes] = []
+    stream = _GzipStream(chunks) if name.endswith(".gz") else _ForwardStream(chunks)
+    img.to_file_map({"image": FileHolder(fileobj=stream), "header": FileHolder(fileobj=stream)})
+    stream.finish()
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(b"".join(chunks))
+    return path
+
+
+def _nifti_image(data, affine: np.ndarray):
+    """The Nifti1Image :func:`write_nifti` writes: RAS sform (and qform when orthogonal), mm."""
+    import nibabel as nib
+
+    affine_ras = _RAS_TO_LPS @ affine
+    img = nib.Nifti1Image(data, affine_ras)
     img.set_sform(affine_ras, code=1)
     try:
-        _orthonormal_directions(volume.affine)
+        _orthonormal_directions(affine)
         img.set_qform(affine_ras, code=1)
     except ValueError:
         img.set_qform(None, code=0)
     img.header.set_xyzt_units(xyz="mm")
-    raw = img.to_bytes()
-    if name.endswith(".gz"):
-        # mtime=0 so that the same volume always gives the same bytes.
-        raw = gzip.compress(raw, compresslevel=6, mtime=0)
+    return img
+
+
+def _write_nifti_slabs(affine: np.ndarray, shape: tuple[int, int, int], dtype, slabs: Iterable[np.ndarray],
+                       path: str | os.PathLike) -> Path:
+    """:func:`write_nifti` of a volume given as consecutive ``k`` slabs, never held whole.
+
+    ``slabs`` yields arrays ``(I, J, k_n)`` of ``dtype`` whose ``k_n`` add up to ``shape[2]``.
+    NIfTI stores ``i`` fastest and ``k`` slowest, so each slab's Fortran-order bytes are a
+    contiguous stretch of the file; the file is byte for byte what :func:`write_nifti` writes
+    for the whole volume (the header is nibabel's for a placeholder of the same shape and dtype).
+    """
+    from nibabel.fileholders import FileHolder
+
+    path = Path(path)
+    name = path.name.lower()
+    if not name.endswith((".nii", ".nii.gz")):
+        raise ValueError(f"NIfTI path must end in .nii or .nii.gz: {path}")
+    dtype = np.dtype(dtype)
+    shape = tuple(int(n) for n in shape)
+    placeholder = np.broadcast_to(np.zeros((), dtype), shape)      # no memory
+    img = _nifti_image(placeholder, affine)
+    chunks: list[bytes] = []
+    stream = _GzipStream(chunks) if name.endswith(".gz") else _ForwardStream(chunks)
+    header = _HeaderOnly(stream)
+    img.to_file_map({"image": FileHolder(fileobj=header), "header": FileHolder(fileobj=header)})
+    k = 0
+    for slab in slabs:
+        slab = np.asarray(slab)
+        if slab.dtype != dtype or slab.shape[:2] != shape[:2] or slab.ndim != 3:
+            raise ValueError(f"slab {slab.shape} {slab.dtype} does not fit a {shape} {dtype} volume")
+        stream.write(np.asfortranarray(slab).tobytes(order="F"))
+        k += slab.shape[2]
+    if k != shape[2]:
+        raise ValueError(f"slabs hold {k} slices, the volume {shape[2]}")
+    stream.finish()
     with atomic_path(path) as tmp:
-        tmp.write_bytes(raw)
+        tmp.write_bytes(b"".join(chunks))
     return path
+
+
+class _ForwardStream(io.RawIOBase):
+    """A write-only, forward-only stream into a list of byte chunks that counts what it wrote
+    (for nibabel's ``seek_tell``, which then checks the position instead of seeking)."""
+
+    def __init__(self, chunks: list) -> None:
+        super().__init__()
+        self.chunks = chunks
+        self.pos = 0
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return False
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        if whence == 0 and offset == self.pos:
+            return self.pos
+        raise OSError("forward-only stream")
+
+    def _put(self, b) -> None:
+        self.chunks.append(bytes(b))
+
+    def write(self, b) -> int:
+        n = memoryview(b).nbytes
+        self._put(b)
+        self.pos += n
+        return n
+
+    def finish(self) -> None:
+        pass
+
+
+class _HeaderOnly(io.RawIOBase):
+    """Passes what nibabel writes before it moves to the data offset (the header and its
+    extension flag) to ``stream`` and drops the rest (the placeholder data)."""
+
+    def __init__(self, stream: "_ForwardStream") -> None:
+        super().__init__()
+        self.stream, self.header_done, self.pos = stream, False, 0
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return False
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        if whence == 0 and offset == self.pos:
+            self.header_done = self.header_done or offset > 0   # the seek to the data offset
+            return self.pos
+        raise OSError("forward-only stream")
+
+    def write(self, b) -> int:
+        n = memoryview(b).nbytes
+        if not self.header_done:
+            self.stream.write(b)
+        self.pos += n
+        return n
+
+
+class _GzipStream(_ForwardStream):
+    """:class:`_ForwardStream` through zlib's gzip container, level 6, mtime 0 (the bytes of
+    ``gzip.compress(data, 6, mtime=0)``, which is ``zlib.compress(data, 6, wbits=31)``)."""
+
+    def __init__(self, chunks: list) -> None:
+        super().__init__(chunks)
+        self.z = zlib.compressobj(6, zlib.DEFLATED, 31)
+
+    def _put(self, b) -> None:
+        self.chunks.append(self.z.compress(b))
+
+    def finish(self) -> None:
+        self.chunks.append(self.z.flush())
 
 
 def write_nrrd(volume: Volume, path: str | os.PathLike) -> Path:

@@ -51,8 +51,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     "default": {"n_stations": 8, "pixel_mm": 1.8, "pitch_mm": 5.0, "thickness_mm": 5.0, "supersample": 4,
                 "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
                 "duration_scale": 1.0, "merged_voxel_mm": 2.0},
-    "tiny": {"n_stations": 3, "pixel_mm": 4.0, "pitch_mm": 10.0, "thickness_mm": 10.0, "supersample": 2,
-             "through": 2, "forearm_pixel_mm": 1.5, "forearm_pitch_mm": 5.0, "n_capsules": 6,
+    "tiny": {"n_stations": 2, "pixel_mm": 4.0, "pitch_mm": 15.0, "thickness_mm": 15.0, "supersample": 2,
+             "through": 2, "forearm_pixel_mm": 2.0, "forearm_pitch_mm": 5.0, "n_capsules": 6,
              "duration_scale": 0.2, "merged_voxel_mm": 6.0},
 }
 
@@ -95,7 +95,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         The summary also written to ``phantom.json``.
     """
     from bonecap.markers import load_marker_set
-    from bonecap.phantom.mri import ForearmPose, plan_stations, render_forearm_stacks, render_stations
+    from bonecap.phantom.mri import (ForearmPose, plan_stations, render_forearm_stacks, render_stations,
+                                     write_merged_labels)
     from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
@@ -135,12 +136,17 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         write_nifti(st.labels, labels_dir / f"{st.plan.name}_oracle.nii.gz")
 
     stations = render_stations(layers, plans, out / "mri", rng, label_meshes=label_meshes,
-                               merged_voxel_mm=cfg["merged_voxel_mm"], inplane_supersample=cfg["supersample"],
+                               merged_voxel_mm=None, inplane_supersample=cfg["supersample"],
                                through_plane_samples=cfg["through"], on_station=save_station_labels,
                                keep_labels=False, patient={"patient_name": f"Phantom^{seed}",
                                                            "patient_id": f"PHANTOM{seed:04d}"})
-    if stations.merged_labels is not None:
-        write_nifti(stations.merged_labels, labels_dir / "merged.nii.gz")
+    # streamed slab by slab: the whole-body grid (~140 MB at the default preset) is never held
+    write_merged_labels(label_meshes, labels_dir / "merged.nii.gz", voxel_mm=cfg["merged_voxel_mm"],
+                        inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"])
+    # the LPS copies of the bones (render layers and labels, ~30 MB at the default preset) are
+    # not used again; skin and muscle (layers[:2]) are written with the truth
+    del label_meshes
+    layers = layers[:2]
     timings["stations"] = time.perf_counter() - t0
     bar.update()
 
@@ -174,12 +180,15 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         pitch_mm=cfg["forearm_pitch_mm"], thickness_mm=cfg["forearm_pitch_mm"],
         inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"],
         study_uid=stations.study_uid)
+    # the posed meshes of the three twists (~100 MB at the default preset) are not used again
+    del poses, posed, f_layers, f_labels
     for name, st in stacks.items():
         forearm_truth[name]["folder"] = str(st.folder.relative_to(out))
         forearm_truth[name]["capsule_centres_lps"] = np.asarray(st.capsule_centres).tolist()
         forearm_truth[name]["stack"] = st.plan.to_dict()
         if st.labels is not None:
             write_nifti(st.labels, labels_dir / f"forearm_{name}_oracle.nii.gz")
+            st.labels = None
     timings["forearm"] = time.perf_counter() - t0
     bar.update()
 

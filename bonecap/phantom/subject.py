@@ -256,7 +256,7 @@ PRESETS: dict[str, dict[str, float]] = {
     "default": {"spacing": 3.5, "sample_spacing": 2.0, "skin_faces": 200_000, "muscle_faces": 200_000,
                 "taubin_iterations": 10},
     "tiny": {"spacing": 6.0, "sample_spacing": 3.5, "skin_faces": 20_000, "muscle_faces": 20_000,
-             "taubin_iterations": 6, "bone_resolution": 2.5},
+             "taubin_iterations": 6, "bone_resolution": 3.5},
 }
 
 _F_MIN = 1.5      # minimum fat (skin to fascia) thickness, mm
@@ -638,8 +638,8 @@ def build_subject_skeleton(params: dict[str, Any], generic="default") -> Skeleto
 
         sp = dict(params["skeleton"])
         per_side = any(k[-2:] in ("_r", "_l") for k in sp)
-        # the tiny preset images at >= 4 mm: bones meshed on a grid 2.5 times as coarse (same shapes,
-        # frames and parameters, undecimated) are ~6x cheaper and still finer than its voxels
+        # the tiny preset images at >= 4 mm: bones meshed on a grid 3.5 times as coarse (same shapes,
+        # frames and parameters, undecimated) cost ~2 s and are about as fine as its 4 mm pixels
         resolution = float(PRESETS.get(params.get("preset", "default"), {}).get("bone_resolution", 1.0))
         sk = _build_generic_skeleton(stature_mm=stature, params=sp, side_mirroring=not per_side,
                                      resolution=resolution)
@@ -2166,6 +2166,81 @@ def _marching_cubes_slabs(field: np.ndarray, h: float) -> tuple[np.ndarray, np.n
     return V[order].astype(np.float64), F
 
 
+def _taubin(V: np.ndarray, F: np.ndarray, lamb: float, nu: float, iterations: int) -> np.ndarray:
+    """Taubin smoothing with the equal-weight umbrella operator, as ``trimesh.smoothing.filter_taubin``.
+
+    The same operator (each vertex moved towards the mean of its edge neighbours,
+    ``+lamb`` on even passes, ``-nu`` on odd ones), built straight from the faces as one
+    CSR matrix: trimesh's builds it through a COO matrix divided by its dense row sums,
+    which on the whole-body surface (~10^6 faces) took ~200 MB more at its peak.
+    """
+    from scipy.sparse import csr_matrix
+
+    n = len(V)
+    F = np.asarray(F)
+    rows = F.ravel().astype(np.int32)
+    cols = F[:, [1, 2, 0]].ravel().astype(np.int32)       # the directed edges of every face
+    L = csr_matrix((np.ones(len(rows), dtype=np.float64), (rows, cols)), shape=(n, n))
+    del rows, cols
+    L.sum_duplicates()
+    L.data[:] = 1.0                                       # an edge counts once, as trimesh's boolean matrix
+    deg = np.diff(L.indptr)
+    L.data /= np.repeat(np.maximum(deg, 1), deg)
+    V = np.array(V, dtype=np.float64, copy=True)
+    for index in range(iterations):
+        dot = L @ V
+        dot -= V
+        if index % 2 == 0:
+            dot *= lamb
+            V += dot
+        else:
+            dot *= nu
+            V -= dot
+    return V
+
+
+#: Above this many faces the body surfaces are decimated in a child process (see :func:`_simplify`).
+_SIMPLIFY_IN_CHILD_FACES = 250_000
+
+_SIMPLIFY_CHILD = """
+import io, sys
+import numpy as np
+import fast_simplification
+d = np.load(io.BytesIO(sys.stdin.buffer.read()))
+v, f = fast_simplification.simplify(d["v"], d["f"], target_reduction=float(d["r"]))
+out = io.BytesIO()
+np.savez(out, v=v, f=f)
+sys.stdout.buffer.write(out.getvalue())
+"""
+
+
+def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarray, np.ndarray]:
+    """``fast_simplification.simplify(v, f, target_reduction=reduction)``; large meshes in a child process.
+
+    The library keeps its working arrays in global C++ vectors that are cleared but never
+    shrunk: decimating the whole-body skin (~450k faces) left ~120 MB allocated for the rest
+    of the run. A fresh interpreter (numpy and the library only, ~0.2 s to start) returns it
+    when it exits. Same algorithm and input, so the same result.
+    """
+    if len(f) <= _SIMPLIFY_IN_CHILD_FACES:
+        import fast_simplification
+
+        return fast_simplification.simplify(v, f, target_reduction=reduction)
+    import io
+    import subprocess
+    import sys
+
+    buf = io.BytesIO()
+    np.savez(buf, v=np.asarray(v, dtype=np.float32), f=np.asarray(f, dtype=np.int32), r=np.float64(reduction))
+    proc = subprocess.run([sys.executable, "-c", _SIMPLIFY_CHILD], input=buf.getvalue(), capture_output=True,
+                          check=False)
+    del buf
+    if proc.returncode != 0:
+        raise RuntimeError(f"mesh decimation failed: {proc.stderr.decode(errors='replace')[-500:]}")
+    d = np.load(io.BytesIO(proc.stdout))
+    return d["v"], d["f"]
+
+
 def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, taubin: int, what: str) -> Mesh:
     """Zero level set of ``field`` (negative inside, model frame) as a smoothed, decimated, watertight mesh."""
     import trimesh
@@ -2173,18 +2248,16 @@ def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, ta
     verts, faces = _marching_cubes_slabs(field, h)
     verts *= h
     verts += origin
+    if taubin:
+        verts = _taubin(verts, faces, lamb=0.5, nu=0.53, iterations=taubin)
     tm = trimesh.Trimesh(verts, faces, process=False)
     del verts, faces
-    if taubin:
-        trimesh.smoothing.filter_taubin(tm, lamb=0.5, nu=0.53, iterations=taubin)
     if len(tm.faces) > max_faces:
-        import fast_simplification
-
         # quadric decimation now and then pinches two sheets into a non-manifold edge: retry with
         # other targets (each try ~0.1-0.5 s)
         for frac in (1.0, 0.9, 0.8):
-            v, fc = fast_simplification.simplify(np.asarray(tm.vertices, dtype=np.float32), np.asarray(tm.faces),
-                                                 target_reduction=1.0 - frac * max_faces / len(tm.faces))
+            v, fc = _simplify(np.asarray(tm.vertices, dtype=np.float32), np.asarray(tm.faces),
+                              1.0 - frac * max_faces / len(tm.faces))
             dec = _repair_pinches(trimesh.Trimesh(v, fc, process=True))
             if dec is not None:
                 tm = dec
@@ -2305,7 +2378,7 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     Cost on 2 cores (CPU time): the body takes ~10-12 s at the default preset
     (its grid filled in slabs, kept as float16: ~75 MB for the two fields),
     ~3-4 s at ``tiny``; the generic skeleton ~18 s to build at the default
-    preset and ~3 s at ``tiny`` (meshed 2.5x coarser), an OpenSim model ~0.5 s
+    preset and ~3 s at ``tiny`` (meshed 3.5x coarser), an OpenSim model ~0.5 s
     to read and vary. ``metadata["timings_s"]`` has the breakdown (wall).
 
     References

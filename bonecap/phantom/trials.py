@@ -1815,42 +1815,68 @@ def synthesize_trials(skeleton: Skeleton, marker_set: MarkerSet, *, skin: Mesh |
     sta_model : SoftTissueModel
     table : JointTable
     """
-    if noise_mm < 0:
-        raise InputError(f"noise_mm must be >= 0, got {noise_mm}")
-    if gap_frames < 0:
-        raise InputError(f"gap_frames must be >= 0, got {gap_frames}")
-    unknown = [t for t in trials if t not in TRIAL_NAMES]
-    if unknown:
-        raise InputError(f"unknown trials {unknown} (known: {', '.join(TRIAL_NAMES)})")
-    table = joint_table(skeleton)
-    binding = place_phantom_markers(marker_set, skeleton, skin, marker_radius_mm=marker_radius_mm)
-    sta_model = build_sta_model(binding, table, skeleton, seed, sta_scale=sta_scale, amplitudes=sta_amplitudes)
-    names = skeleton.names
-    index = {n: i for i, n in enumerate(names)}
-    mb = np.array([index[b] for b in binding.bones], int)
-    j_names, j_child, j_parent, j_local = _joint_list(skeleton)
-    j_idx = np.array([index[c] for c in j_child], int)
-    j_local = np.array(j_local).reshape(-1, 3)
-    out = []
-    for name in trials:
-        motion = trial_motion(name, table, duration_scale=duration_scale, skeleton=skeleton, skin=skin)
-        T, info = pose_trial(skeleton, table, motion, skin=skin)
+    _check_trial_args(noise_mm, gap_frames)
+    ctx = _TrialContext(skeleton, marker_set, skin=skin, seed=seed, trials=trials, sta_scale=sta_scale,
+                        marker_radius_mm=marker_radius_mm, sta_amplitudes=sta_amplitudes)
+    out = [ctx.trial(name, duration_scale=duration_scale, noise_mm=noise_mm, gap_frames=gap_frames, n_gaps=n_gaps)
+           for name in trials]
+    return out, ctx.binding, ctx.sta_model, ctx.table
+
+
+class _TrialContext:
+    """What every trial of one subject shares (joint table, marker binding, artefact model), and
+    :meth:`trial` to make one trial: :func:`make_trials` makes, writes and drops them one at a
+    time (all trials at the default preset hold ~100 MB of poses), :func:`synthesize_trials`
+    keeps them. Each trial draws from its own seeded streams, so the two give the same trials."""
+
+    def __init__(self, skeleton: Skeleton, marker_set: MarkerSet, *, skin: Mesh | None, seed: int,
+                 trials: Sequence[str], sta_scale: float, marker_radius_mm: float,
+                 sta_amplitudes: Mapping[str, float] | None) -> None:
+        unknown = [t for t in trials if t not in TRIAL_NAMES]
+        if unknown:
+            raise InputError(f"unknown trials {unknown} (known: {', '.join(TRIAL_NAMES)})")
+        self.skeleton, self.skin, self.seed = skeleton, skin, seed
+        self.table = joint_table(skeleton)
+        self.binding = place_phantom_markers(marker_set, skeleton, skin, marker_radius_mm=marker_radius_mm)
+        self.sta_model = build_sta_model(self.binding, self.table, skeleton, seed, sta_scale=sta_scale,
+                                         amplitudes=sta_amplitudes)
+        self.names = skeleton.names
+        index = {n: i for i, n in enumerate(self.names)}
+        self.mb = np.array([index[b] for b in self.binding.bones], int)
+        self.j_names, self.j_child, self.j_parent, j_local = _joint_list(skeleton)
+        self.j_idx = np.array([index[c] for c in self.j_child], int)
+        self.j_local = np.array(j_local).reshape(-1, 3)
+
+    def trial(self, name: str, *, duration_scale: float, noise_mm: float, gap_frames: int,
+              n_gaps: int | Mapping[str, int]) -> PhantomTrial:
+        skeleton, skin, seed, binding = self.skeleton, self.skin, self.seed, self.binding
+        motion = trial_motion(name, self.table, duration_scale=duration_scale, skeleton=skeleton, skin=skin)
+        T, info = pose_trial(skeleton, self.table, motion, skin=skin)
         F, M = motion.n_frames, len(binding.names)
-        Tm = T[:, mb]  # (F, M, 4, 4)
+        Tm = T[:, self.mb]  # (F, M, 4, 4)
         truth = _apply(Tm, np.broadcast_to(binding.local, (F, M, 3)))
-        d_local = sta_model.displacement(sta_model.dof_values(motion))
+        d_local = self.sta_model.displacement(self.sta_model.dof_values(motion))
         sta = (Tm[..., :3, :3] @ d_local[..., None])[..., 0]
+        del Tm
         noise = _rng(seed, name, "noise").normal(0.0, noise_mm, (F, M, 3)) if noise_mm > 0 else np.zeros((F, M, 3))
         points = truth + sta + noise
         gaps = _gaps_for(name, n_gaps, gap_frames, F, M, seed)
         for m, s, n in gaps:
             points[s:s + n, m] = np.nan
-        jc = _apply(T[:, j_idx], np.broadcast_to(j_local, (F, len(j_idx), 3))) if len(j_idx) else np.zeros((F, 0, 3))
-        out.append(PhantomTrial(name=name, times=motion.times, bones=list(names), transforms=T,
-                                markers=list(binding.names), marker_truth=truth, sta=sta, noise=noise,
-                                points=points, gaps=gaps, joint_names=j_names, joint_child=j_child,
-                                joint_parent=j_parent, joint_centres=jc, motion=motion, info=info))
-    return out, binding, sta_model, table
+        j_idx = self.j_idx
+        jc = (_apply(T[:, j_idx], np.broadcast_to(self.j_local, (F, len(j_idx), 3))) if len(j_idx)
+              else np.zeros((F, 0, 3)))
+        return PhantomTrial(name=name, times=motion.times, bones=list(self.names), transforms=T,
+                            markers=list(binding.names), marker_truth=truth, sta=sta, noise=noise,
+                            points=points, gaps=gaps, joint_names=self.j_names, joint_child=self.j_child,
+                            joint_parent=self.j_parent, joint_centres=jc, motion=motion, info=info)
+
+
+def _check_trial_args(noise_mm: float, gap_frames: int) -> None:
+    if noise_mm < 0:
+        raise InputError(f"noise_mm must be >= 0, got {noise_mm}")
+    if gap_frames < 0:
+        raise InputError(f"gap_frames must be >= 0, got {gap_frames}")
 
 
 def _write_npz(path: Path, arrays: dict[str, Any]) -> None:
@@ -1959,10 +1985,13 @@ def make_trials(skeleton: Skeleton, marker_set: MarkerSet, out_dir: str | os.Pat
 
     t0 = time.perf_counter()
     out = Path(out_dir)
-    made, binding, sta_model, table = synthesize_trials(
-        skeleton, marker_set, skin=skin, seed=seed, trials=trials, duration_scale=duration_scale,
-        sta_scale=sta_scale, noise_mm=noise_mm, gap_frames=gap_frames, n_gaps=n_gaps,
-        marker_radius_mm=marker_radius_mm, sta_amplitudes=sta_amplitudes)
+    _check_trial_args(noise_mm, gap_frames)
+    ctx = _TrialContext(skeleton, marker_set, skin=skin, seed=seed, trials=trials, sta_scale=sta_scale,
+                        marker_radius_mm=marker_radius_mm, sta_amplitudes=sta_amplitudes)
+    binding, sta_model, table = ctx.binding, ctx.sta_model, ctx.table
+    # one trial at a time: made, written, dropped
+    made = (ctx.trial(name, duration_scale=duration_scale, noise_mm=noise_mm, gap_frames=gap_frames,
+                      n_gaps=n_gaps) for name in trials)
     summary: dict[str, Any] = {"subject": subject, "seed": int(seed), "rate_hz": RATE_HZ,
                                "markers": list(binding.names), "trials": {},
                                "joint_table": table.describe(),
@@ -1989,6 +2018,7 @@ def make_trials(skeleton: Skeleton, marker_set: MarkerSet, out_dir: str | os.Pat
             "seconds": round(float(tr.times[-1] + 1 / RATE_HZ), 3), "gaps": [list(g) for g in tr.gaps],
             "sta_peak_mm": peak, "walking_speed_mm_s": round(tr.info["speed_mm_s"], 1),
         }
+        del tr, trial, mag          # before the next trial is made
     binding_path = out / "truth" / "marker_binding.yaml"
     doc = {"frame": "each marker's bone frame at the reference pose (mm)",
            "markers": {n: {"bone": b, "local_mm": [float(x) for x in p], "method": m,

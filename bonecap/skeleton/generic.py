@@ -1905,7 +1905,7 @@ def _build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = No
     ``resolution`` > 1 samples every bone's implicit shape on a grid that many times
     coarser, without decimation: the same shapes, frames,
     joint centres and parameters, meshed ~``resolution**3`` times faster (the phantom's
-    ``tiny`` preset, whose MRI voxels are 4 mm and more, uses 2.5). Thin parts then lose
+    ``tiny`` preset, whose MRI voxels are 4 mm and more, uses 3.5). Thin parts then lose
     detail and a cortex thinner than about a voxel may get no inner surface.
     """
     t0 = time.perf_counter()
