@@ -496,8 +496,13 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     bar.set_postfix_str("warp")
     if posed is None:  # user seeds: place the template on the extracted bones' centroids
         posed = _template_from_targets(template, extracted)
-    targets = _plausible_targets(posed, extracted)
-    personal, warp_report = warp_skeleton(posed, targets)
+    targets = _plausible_targets(posed, extracted, strict=labels is None and seeds is None)
+    # the template is placed bone by bone already (limbs re-posed toward the MRI)
+    placed_ok = labels is None and seeds is None
+    personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
+                                          start_from="placed" if placed_ok else "ancestor",
+                                          max_turn_deg=35.0 if placed_ok else 45.0,
+                                          max_shift_mm=40.0 if placed_ok else np.inf)
     # the skull from the head's skin (its thin cortex escapes the slice rules)
     skull_report = skull_from_skin(personal, posed, skin) if "skull" not in targets else None
     lap("warp")
@@ -574,7 +579,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     return subject, report, qc_and_meshes
 
 
-def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh]) -> dict[str, Mesh]:
+def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh], strict: bool = True) -> dict[str, Mesh]:
     """Extracted meshes whose size and place fit the placed template bone.
 
     A wild one (two bones merged, a bone mistaken for its neighbour) would
@@ -590,7 +595,10 @@ def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh]) -> dict[s
         v_e = abs(m.to_trimesh().volume)
         size = np.linalg.norm(np.ptp(wt.vertices, axis=0))
         shift = np.linalg.norm(wt.vertices.mean(0) - m.vertices.mean(0))
-        if 0.4 < v_e / max(v_t, 1e-9) < 2.5 and shift < 0.5 * size + 20.0:
+        # placed bone by bone, a bone's centroid is within a few centimetres;
+        # placed by a similarity only (user seeds or labels), limbs may be far
+        near = shift < (0.25 * size + 15.0 if strict else 0.5 * size + 20.0)
+        if 0.5 < v_e / max(v_t, 1e-9) < 2.0 and near:
             out[name] = m
     return out
 
@@ -859,7 +867,7 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
 
 
 def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
-                    max_residual_mm: float = 6.0) -> dict[str, Any] | None:
+                    max_residual_mm: float = 12.0) -> dict[str, Any] | None:
     """Fit the skull (and mandible) to the head's skin (in place): what MRI bone contours miss.
 
     The skull's cortex is thin and its marrow scant, so the slice rules do not
@@ -877,7 +885,7 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
     """
     import trimesh
 
-    from bonecap.skeleton.warp import affine_icp, rigid_icp
+    from bonecap.skeleton.warp import rigid_icp
 
     if "skull" not in posed.bones or posed.bones["skull"].mesh is None or skin is None:
         return None
@@ -895,20 +903,26 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
     if keep_v.sum() < 100:
         return None
     fz = keep_v[sf].all(axis=1)
-    head = Mesh(sv, sf[fz], "lps")
-    T0, _ = rigid_icp(src, head)
-    T, res = affine_icp(src, head, T0)
-    A = T  # template-placed skull -> personal (world)
-    out = {"icp_residual_mean_mm": float(np.mean(res)), "affine": A.tolist(), "scalp_mm": scalp_mm}
-    sv3 = np.linalg.svd(A[:3, :3], compute_uv=False)
-    if np.mean(res) > max_residual_mm or sv3.max() > 1.3 or sv3.min() < 0.7:
+    # only the head's own vertices (a target's unused vertices would still attract the ICP)
+    used = np.unique(sf[fz])
+    remap = np.full(len(sv), -1)
+    remap[used] = np.arange(len(used))
+    head = Mesh(sv[used], remap[sf[fz]], "lps")
+    # rigid only: the vault's shape under a uniform scalp says where the skull
+    # is and how it is turned; an affine would trade the scalp's unevenness
+    # (thicker over the occiput) for a stretch of the skull
+    A, res = rigid_icp(src, head)
+    out = {"icp_residual_mean_mm": float(np.mean(res)), "transform": A.tolist(), "scalp_mm": scalp_mm}
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(A[:3, :3]) - 1) / 2, -1, 1))))
+    if np.mean(res) > max_residual_mm or turn > 30.0:
         # the head's skin did not take the vault (neck or shoulders caught, a
-        # truncated head): keep the skull the warp carried, and say so
+        # truncated head): the skull stays where the template was placed on
+        # the body (head-to-sole extent), and the report says so
         out["used"] = False
-        out["reason"] = (f"ICP residual {np.mean(res):.1f} mm or stretch {sv3.min():.2f}-{sv3.max():.2f} "
-                         f"out of bounds")
-        return out
-    out["used"] = True
+        out["reason"] = f"ICP residual {np.mean(res):.1f} mm or turn {turn:.0f} deg out of bounds: placed skull kept"
+        A = np.eye(4)
+    else:
+        out["used"] = True
     from bonecap.model import Bone
 
     # the rigid part of A keeps the ISB frame; the rest reshapes the mesh

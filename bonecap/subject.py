@@ -227,7 +227,14 @@ def _plain(obj: Any) -> Any:
         return obj.item()
     if isinstance(obj, Path):
         return str(obj)
-    return obj
+    import dataclasses
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        # e.g. the OpenSim markers a template keeps in its metadata
+        return _plain(dataclasses.asdict(obj))
+    if obj is None or isinstance(obj, (str, int, float, bool)):
+        return obj
+    return str(obj)
 
 
 def read_subject(subject_dir: str | os.PathLike, *, load_meshes: bool = True) -> Subject:

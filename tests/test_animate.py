@@ -171,3 +171,22 @@ def test_bad_trials(pycgm_subject, shared_data, tmp_path, cli):
     # not a subject folder
     res = cli("animate", tmp_path, tmp_path / "no_rkne.c3d", "-o", tmp_path / "out3")
     assert res.returncode == 1 and "subject.yaml" in res.stderr
+
+
+def test_opensim_template_end_to_end(shared_data, tmp_path, cli):
+    """build-subject --generic MODEL.osim --static, animate, evaluate on a phantom made with that model."""
+    from bonecap.phantom import make_phantom
+
+    model = shared_data / "bones/opensim/models/Rajagopal2016.osim"
+    ph = tmp_path / "ph"
+    make_phantom(ph, seed=2, preset="tiny", generic=str(model))
+    res = cli("build-subject", "--generic", model, "--static", ph / "trials/static.c3d", "-o", tmp_path / "s")
+    assert res.returncode == 0, res.stderr
+    res = cli("animate", tmp_path / "s", ph / "trials/walk.c3d", "-o", tmp_path / "a")
+    assert res.returncode == 0, res.stderr
+    res = cli("evaluate", "motion", tmp_path / "a", "--truth", ph / "truth", "--json")
+    assert res.returncode == 0, res.stderr
+    ev = json.loads(res.stdout)["overall"]
+    # OpenSim body names, every body scored, all finite
+    assert {"pelvis", "femur_r", "tibia_l", "humerus_r"} <= set(ev)
+    assert all(np.isfinite(v["deg_median"]) for v in ev.values() if v.get("frames"))

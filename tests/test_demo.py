@@ -56,3 +56,13 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
     assert (out / "phantom/truth/README.md").is_file()
     assert sorted(p.name for p in (out / "phantom/trials").glob("*.c3d")) == sorted(
         f"{t}.c3d" for t in report["phantom"]["trials"])
+    # stages 6-8: build-subject on the phantom, animate its trials, evaluate both
+    assert (out / "subject/subject.yaml").is_file() and report["subject"]["bones"] == 90
+    assert report["subject"]["markers_bound"] >= 57
+    assert set(report["animate"]) == set(report["phantom"]["trials"])
+    for t, r in report["animate"].items():
+        assert (out / "animate" / f"{t}.glb").is_file() and r["valid_share"] > 0.5
+    ev = report["evaluation"]
+    assert 0 < ev["subject"]["oracle_dice"] <= 1 and ev["subject"]["personal_surface_mean_mm"] > 0
+    assert ev["motion"]["bones"] > 20 and np.isfinite(ev["motion"]["deg_median_over_bones"])
+    assert "evaluate vs truth" in res.stdout

@@ -647,10 +647,33 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
             "n_features": 0 if warp is None else len(warp.src)}
 
 
+def _implausible(start: np.ndarray, r: dict[str, Any], max_turn_deg: float, max_res_mm: float,
+                 centre: np.ndarray | None = None, max_shift_mm: float = np.inf) -> str:
+    """Why a bone's ICP result cannot be the bone (empty string when it can)."""
+    if centre is not None and np.isfinite(max_shift_mm):
+        shift = float(np.linalg.norm(_apply(r["T_rigid"], centre[None])[0] - _apply(np.asarray(start, float),
+                                                                                  centre[None])[0]))
+        if shift > max_shift_mm:
+            return f"the rigid fit moved it {shift:.0f} mm from its placed pose"
+    R0 = _polar_rotation(np.asarray(start, float)[:3, :3])
+    dR = R0.T @ r["T_rigid"][:3, :3]
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+    if turn > max_turn_deg:
+        return f"the rigid fit turned it {turn:.0f} deg from its placed pose"
+    sv = np.linalg.svd(r["T_affine"][:3, :3] @ np.linalg.inv(np.asarray(start, float)[:3, :3]), compute_uv=False)
+    if sv.max() > 1.6 or sv.min() < 0.6:
+        return f"the affine fit stretched it by {sv.min():.2f}-{sv.max():.2f}"
+    res = float(np.mean(r["affine_residual_mm"]))
+    if res > max_res_mm:
+        return f"affine residual {res:.1f} mm > {max_res_mm:g} mm"
+    return ""
+
+
 def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_features: int = 600,
                   kernel_widths_mm=None, smoothing: float = 1e-3, max_residual_mm: float = 1.5,
-                  rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0
-                  ) -> tuple[Skeleton, dict[str, Any]]:
+                  rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0,
+                  max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
+                  start_from: str = "ancestor", max_shift_mm: float = np.inf) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -713,6 +736,19 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         Name of the target world, written to the result's ``world``.
     seed : int
         Seed of the surface sampling.
+    max_turn_deg, max_affine_residual_mm : float
+        A bone whose rigid fit turns it more than ``max_turn_deg`` from its
+        start, whose affine stretches it below 0.6 or above 1.6, or whose
+        affine residual exceeds ``max_affine_residual_mm`` is not warped onto
+        that target (it is probably another bone, or two merged) and is
+        carried by its neighbours instead; the report says why.
+    max_shift_mm : float
+        Likewise for a rigid fit that moves the bone's centre farther than this.
+    start_from : {"ancestor", "placed"}
+        Where each bone's rigid ICP starts: from its nearest warped ancestor's
+        result (a template in another pose than the targets), or from
+        ``init`` itself for every bone (a template already placed bone by
+        bone near the targets, as build-subject does).
 
     Returns
     -------
@@ -742,6 +778,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     if not own:
         raise ValueError("no template bone with a mesh has a target: nothing to warp onto")
     t_start = time.perf_counter()
+    if start_from not in ("ancestor", "placed"):
+        raise ValueError(f"start_from must be 'ancestor' or 'placed', got {start_from!r}")
     if init is None:
         init = initial_transform(template, targets) if len(own) >= 3 else np.eye(4)
     init = np.asarray(init, dtype=float)
@@ -749,6 +787,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         raise ValueError(f"init must be a 4x4 transform, got {init.shape}")
 
     results: dict[str, dict[str, Any]] = {}
+    rejected: dict[str, str] = {}
     rigid_of: dict[str, np.ndarray] = {}
     for i, (name, bone) in enumerate(template.bones.items()):
         if name not in targets or bone.mesh is None:
@@ -758,7 +797,10 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         a = bone.parent
         while a is not None and a not in rigid_of:
             a = template.bones[a].parent
-        start = rigid_of[a] if a is not None else init
+        # a template already placed bone by bone (build-subject poses its limbs
+        # toward the MRI's) starts every bone where it is: an ancestor's ICP
+        # error must not tilt its children
+        start = init if start_from == "placed" or a is None else rigid_of[a]
         src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
         check = src_world if bone.inner_mesh is None else np.concatenate(
             [src_world, _apply(bone.bone_to_world, bone.inner_mesh.vertices)])
@@ -767,7 +809,14 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         check = check[::2]
         r = _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name]), start, n_features,
                       kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * i,
-                      rotation_prior if a is not None else 0.0, check)
+                      rotation_prior if (a is not None or start_from == "placed") else 0.0, check)
+        # a target that only fits the bone turned over or stretched is not this
+        # bone (two bones merged, a neighbour taken for it): carry the bone from
+        # its neighbours instead of warping it onto the wrong shape
+        why = _implausible(start, r, max_turn_deg, max_affine_residual_mm, src_world.mean(axis=0), max_shift_mm)
+        if why:
+            rejected[name] = why
+            continue
         results[name] = r
         rigid_of[name] = r["T_rigid"]
 
@@ -798,14 +847,27 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
 
     # bones without a target: an affine from the joints they share with warped bones
     carried: dict[str, np.ndarray] = {}
+    kept_placed: list[str] = []
     for name, bone in template.bones.items():
         if name in results:
             continue
         A = [bone.landmark_in_world(k) for k in bone.joint_centres if (name, k) in joint_pos]
         B = [joint_pos[(name, k)] for k in bone.joint_centres if (name, k) in joint_pos]
         rel = _nearest_relative(template, name, results, carried)
-        M = rel if rel is not None else init
+        # a placed template: the bone's own placed pose, corrected onto its warped joints
+        M = init if start_from == "placed" or rel is None else rel
         M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3))
+        if start_from == "placed" and bone.mesh is not None:
+            # joints borrowed from badly warped neighbours must not throw a placed
+            # bone across the body: beyond the same bounds as an own target, keep it placed
+            fake = {"T_rigid": np.eye(4), "T_affine": M, "affine_residual_mm": np.zeros(1)}
+            c = _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0)
+            moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
+            R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
+            turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
+            if moved > max_shift_mm or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
+                M = np.asarray(init, float).copy()
+                kept_placed.append(name)
         carried[name] = M
         # the joints it shares only with other carried bones follow it
         for k in bone.joint_centres:
@@ -881,7 +943,10 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 "flags": r["flags"],
             }
         else:
-            report_bones[name] = {"source": "neighbours", "n_features": 0, "residual_mean_mm": None,
+            report_bones[name] = {"source": ("placed template (neighbours' joints out of bounds)"
+                                             if name in kept_placed else "neighbours")
+                                  + (f" (own target rejected: {rejected[name]})" if name in rejected else ""),
+                                  "n_features": 0, "residual_mean_mm": None,
                                   "residual_max_mm": None, "min_jacobian_det": float(np.linalg.det(A[:3, :3])),
                                   "affine_residual_mean_mm": None, "kernel_width_mm": None, "flags": []}
     meta = dict(template.metadata)
