@@ -25,10 +25,6 @@ to ``--long-frames`` frames; OpenSim's IK ``track`` loop. The wall-clock figures
 
 Notes:
 
-- If ``bonecap build-subject`` fails (at commit 17142fd it crashes in ``write_subject`` on an OpenSim
-  template: ``RepresenterError ... OsimMarker``), the benchmark says so and builds the same subject
-  with ``benchmarks/opensim/build_subject_workaround.py`` (the same API calls, the template's marker
-  metadata made plain dicts).
 - A DIAGNOSTIC section (not the issue's metric) removes, for each tool, each bone's constant frame
   offset estimated on the static trial against the truth, to separate tracking error from
   frame-definition / scaling / marker-placement bias.
@@ -117,15 +113,7 @@ def build_subject(phantom: Path, subj: Path, log: dict) -> None:
                         phantom / "trials/static.c3d", "-o", subj])
     log["build_subject"] = {"returncode": p.returncode, "wall_s": wall, "cpu_s": cpu}
     if p.returncode != 0:
-        log["build_subject"]["error"] = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
-        print(f"bonecap build-subject FAILED (rc {p.returncode}): {log['build_subject']['error']}\n"
-              "  -> using benchmarks/opensim/build_subject_workaround.py (same API calls, OsimMarker "
-              "metadata made plain)", flush=True)
-        p2, wall, cpu = run([sys.executable, ROOT / "benchmarks/opensim/build_subject_workaround.py",
-                             GENERIC, phantom / "trials/static.c3d", subj])
-        if p2.returncode != 0:
-            raise SystemExit(f"workaround failed too:\n{p2.stderr}")
-        log["build_subject"]["workaround"] = {"wall_s": wall, "cpu_s": cpu}
+        raise SystemExit(f"bonecap build-subject failed (rc {p.returncode}):\n{p.stderr}")
 
 
 def _load(path: Path) -> dict:
