@@ -46,13 +46,12 @@ import os
 import platform
 import resource
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bonecap.evaluate import _stats, evaluate_motion, pose_errors
+from bonecap.evaluate import evaluate_motion
 from bonecap.io.c3d import read_c3d
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -157,32 +156,8 @@ def static_offsets(est_path: Path, true_path: Path) -> dict[str, np.ndarray]:
 
 
 def evaluate_with_offsets(out_dir: Path, truth_dir: Path, trials: list[str], offsets: dict) -> dict:
-    """Like :func:`evaluate_motion` (same metric), after applying the static bone-frame offsets."""
-    res: dict = {"trials": {}, "overall": {}}
-    pooled: dict = {}
-    for t in trials:
-        est, tru = _load(out_dir / f"{t}_poses.npz"), _load(truth_dir / f"{t}_poses.npz")
-        ei, ti = _aligned(est, tru)
-        t_idx = {str(b): i for i, b in enumerate(tru["bones"])}
-        table = {}
-        for i, b in enumerate(est["bones"]):
-            b = str(b)
-            if b not in t_idx or b not in offsets:
-                continue
-            Te = est["transforms"][ei, i] @ offsets[b]
-            Tt = tru["transforms"][ti, t_idx[b]]
-            ok = est["valid"][ei, i] & tru["valid"][ti, t_idx[b]]
-            ok &= np.isfinite(Te).all(axis=(1, 2)) & np.isfinite(Tt).all(axis=(1, 2))
-            if not ok.any():
-                table[b] = {"frames": 0}
-                continue
-            deg, mm = pose_errors(Te[ok], Tt[ok])
-            table[b] = _stats(deg, mm)
-            pooled.setdefault(b, []).append((deg, mm))
-        res["trials"][t] = table
-    for b, parts in pooled.items():
-        res["overall"][b] = _stats(np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts]))
-    return res
+    """:func:`evaluate_motion` (same metric) after applying the static bone-frame offsets."""
+    return evaluate_motion(out_dir, truth_dir, offsets=offsets, trials=trials)
 
 
 def bonecap_solve_cpu(subj: Path, c3ds: list[Path], repeats: int = 3) -> dict[str, dict]:

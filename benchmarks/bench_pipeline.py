@@ -56,7 +56,7 @@ def evaluate(what: str, path: Path, truth: Path, log: Path) -> dict:
 
 
 def subject_table(ev: dict) -> list[str]:
-    lines = [f"| bone | dice | oracle | extracted mean mm | personal mean mm | p95 | affine-only mean mm |",
+    lines = ["| bone | dice | oracle | extracted mean mm | personal mean mm | p95 | affine-only mean mm |",
              "|---|---|---|---|---|---|---|"]
     for b, r in ev["bones"].items():
         if "dice" not in r and "extracted_surface_mean_mm" not in r:

@@ -390,7 +390,6 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     qc : callable
         ``qc(folder)`` writes the QC pictures into ``folder/qc``.
     """
-    from bonecap.build_subject import bind_static, pose_to_static, static_markers
     from bonecap.io.c3d import read_c3d
     from bonecap.markers import check_marker_set, load_marker_set
     from bonecap.meshing import mesh_from_slices, meshes_from_labels

@@ -46,8 +46,21 @@ def _load(path: Path) -> dict[str, np.ndarray]:
 
 
 def evaluate_motion(out_dir: str | os.PathLike, truth_dir: str | os.PathLike, *,
-                    bones: list[str] | None = None) -> dict[str, Any]:
+                    bones: list[str] | None = None, offsets: dict[str, np.ndarray] | None = None,
+                    trials: list[str] | None = None) -> dict[str, Any]:
     """Per-trial, per-bone pose errors against the truth.
+
+    Parameters
+    ----------
+    out_dir, truth_dir : path-like
+    bones : list of str, optional
+        Score only these bones.
+    offsets : dict of str -> ndarray (4, 4), optional
+        A constant correction right-multiplied onto each estimated bone pose
+        before scoring (a diagnostic: removing each bone's static frame offset
+        separates tracking error from frame-definition bias).
+    trials : list of str, optional
+        Score only these trials (stems).
 
     Returns
     -------
@@ -67,7 +80,8 @@ def evaluate_motion(out_dir: str | os.PathLike, truth_dir: str | os.PathLike, *,
         raise InputError("no such truth folder", truth_dir)
     result: dict[str, Any] = {"trials": {}, "overall": {}}
     pooled: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-    pairs = [(p, truth_dir / p.name) for p in sorted(out_dir.glob("*_poses.npz")) if (truth_dir / p.name).is_file()]
+    pairs = [(p, truth_dir / p.name) for p in sorted(out_dir.glob("*_poses.npz")) if (truth_dir / p.name).is_file()
+             and (trials is None or p.name[: -len("_poses.npz")] in trials)]
     if not pairs:
         raise InputError(f"no <trial>_poses.npz here has a counterpart in {truth_dir}", out_dir)
     for est_path, true_path in pairs:
@@ -81,10 +95,13 @@ def evaluate_motion(out_dir: str | os.PathLike, truth_dir: str | os.PathLike, *,
             raise DataError(f"no frame numbers in common with {true_path}", est_path)
         e_idx = {str(b): i for i, b in enumerate(est["bones"])}
         t_idx = {str(b): i for i, b in enumerate(tru["bones"])}
-        names = [b for b in e_idx if b in t_idx and (bones is None or b in bones)]
+        names = [b for b in e_idx if b in t_idx and (bones is None or b in bones)
+                 and (offsets is None or b in offsets)]
         table = {}
         for b in names:
             Te = est["transforms"][ei, e_idx[b]]
+            if offsets is not None:
+                Te = Te @ offsets[b]
             Tt = tru["transforms"][ti, t_idx[b]]
             ok = est["valid"][ei, e_idx[b]] & tru["valid"][ti, t_idx[b]]
             ok &= np.isfinite(Te).all(axis=(1, 2)) & np.isfinite(Tt).all(axis=(1, 2))

@@ -64,6 +64,7 @@ def test_outputs_of_a_movement_trial(pycgm_motion, shared_data):
     stem = "pycgm_Test_Movement_trial"
     r = report["trials"][stem]
     trial = read_c3d(shared_data / PYCGM / f"{stem}.c3d")
+    assert r["frames"] == trial.n_frames and r["markers_used"] == 39 and not r["markers_missing"]
     z = np.load(out / f"{stem}_poses.npz")
     assert set(z.files) >= {"bones", "times", "first_frame", "transforms", "valid", "markers", "residuals"}
     F = trial.n_frames
