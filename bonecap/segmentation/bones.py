@@ -1,0 +1,370 @@
+"""Every bone of an axial MRI stack, slice by slice, from seeds (stage 3 of ``build-subject``).
+
+Each bone has a seed polyline in the LPS world (for a long bone the line from
+its proximal to its distal joint centre; for other bones one or a few
+points, e.g. from the template roughly aligned to the skin, or placed by eye
+as in the paper). In each axial slice the bone's seeds are where its polyline
+crosses the slice plane; the bone is segmented there by its rule --
+:mod:`bonecap.segmentation.cortical` for long bones,
+:mod:`bonecap.segmentation.density` for the others -- and each region is
+labelled with the bone's id. Holes are filled per slice (bones leave the
+field of view, so a 3-D fill would leave the cortical tube open).
+
+Public API
+----------
+- :data:`LONG_BONES`, :func:`default_rule` ``(bone) -> "cortical" | "density"``
+- :func:`slice_seeds` ``(volume, polyline_lps, margin_mm=20.0) -> list of ndarray (n_k, 2)``
+- :func:`segment_bones` ``(volume, seeds, *, body_mask=None, rules=None, progress=True, ...) -> (labels, ids)``
+
+References
+----------
+Kojima et al., the MRI-based personal skeleton and motion-capture paper this
+project follows (bone contours slice by slice; the cortical-edge and
+density-threshold rules; seeds per bone).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Mapping
+
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import linear_sum_assignment
+
+from bonecap.model import Volume
+from bonecap.progress import progress as _progress
+from bonecap.segmentation import cortical, density
+from bonecap.segmentation.skin import segment_body
+
+__all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones"]
+
+#: Bones segmented by the cortical-edge rule (base names, without ``_r``/``_l``).
+LONG_BONES = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
+RULES = ("cortical", "density")
+
+# Proximal femur: the hip-knee line (the mechanical axis) passes through the
+# femoral head but runs 30-40 mm medial of the shaft at the lesser trochanter,
+# so the femur's marrow is looked for farther from its seed.
+_SEARCH_RADIUS_MM = {"femur": 45.0, "humerus": 35.0}
+
+
+def _base(bone: str) -> str:
+    return re.sub(r"_[rl]$", "", str(bone).lower())
+
+
+def default_rule(bone: str) -> str:
+    """``"cortical"`` for the long bones (femur, tibia, fibula, humerus, radius, ulna), else ``"density"``.
+
+    Pelvis (``hip_r``/``hip_l``), sacrum, scapula, vertebrae, ribs, patella,
+    sternum, clavicle and everything else (hands, feet, skull) have little
+    cortex on MRI and take the density-threshold rule (Kojima et al.).
+    """
+    return "cortical" if _base(bone) in LONG_BONES else "density"
+
+
+def slice_seeds(volume: Volume, polyline_lps, margin_mm: float = 20.0) -> list[np.ndarray]:
+    """Where a seed polyline crosses each axial slice, in pixel coordinates.
+
+    Parameters
+    ----------
+    volume : Volume
+        Axial stack (``k`` the slice axis), ``affine`` voxel -> LPS mm.
+    polyline_lps : array (N, 3)
+        Seed points in the LPS world, mm, in order along the bone (N >= 1).
+    margin_mm : float
+        Slices beyond the polyline's ends by at most this (along the slice
+        normal) get the nearest end's in-plane position; farther slices get
+        no seed (the bone is not searched there). A single point is seeded
+        on the slices within ``margin_mm`` of it.
+
+    Returns
+    -------
+    list of ndarray (n_k, 2)
+        Per slice ``k``, the ``(i, j)`` of every crossing (0, 1 or several:
+        a bent polyline may cross a slice more than once).
+
+    Raises
+    ------
+    ValueError
+        Not an (N, 3) finite array, or a negative margin.
+    """
+    pts = np.asarray(polyline_lps, dtype=float)
+    if pts.ndim == 1 and pts.shape == (3,):
+        pts = pts[None]
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.isfinite(pts).all():
+        raise ValueError(f"a seed polyline must be a finite (N, 3) array of LPS mm, got shape {pts.shape}")
+    if not margin_mm >= 0:
+        raise ValueError(f"margin_mm must be >= 0, got {margin_mm}")
+    ijk = volume.world_to_index(pts)
+    K = volume.shape[2]
+    dz = float(volume.spacing[2])
+    ks = np.arange(K, dtype=float)
+    out: list[list[np.ndarray]] = [[] for _ in range(K)]
+    # crossings of each segment (vectorised over slices)
+    for a, b in zip(ijk[:-1], ijk[1:]):
+        lo, hi = min(a[2], b[2]), max(a[2], b[2])
+        sel = ks[(ks >= lo) & (ks <= hi)]
+        if sel.size == 0:
+            continue
+        if hi - lo < 1e-9:           # segment lying in a slice: its midpoint
+            pts_k = np.repeat(((a + b) / 2)[None, :2], sel.size, axis=0)
+        else:
+            t = (sel - a[2]) / (b[2] - a[2])
+            pts_k = a[None, :2] + t[:, None] * (b - a)[None, :2]
+        for k, p in zip(sel.astype(int), pts_k):
+            out[k].append(p)
+    # beyond the ends: the nearest end, within the margin
+    kmin, kmax = ijk[:, 2].min(), ijk[:, 2].max()
+    end_lo, end_hi = ijk[np.argmin(ijk[:, 2]), :2], ijk[np.argmax(ijk[:, 2]), :2]
+    for k in range(K):
+        if out[k]:
+            continue
+        if kmin - margin_mm / dz <= k < kmin:
+            out[k].append(end_lo)
+        elif kmax < k <= kmax + margin_mm / dz:
+            out[k].append(end_hi)
+    result = []
+    for lst in out:
+        arr = np.array(lst, float).reshape(-1, 2)
+        # duplicates (a crossing exactly at a vertex is found by both segments)
+        result.append(np.unique(np.round(arr, 6), axis=0) if len(arr) > 1 else arr)
+    return result
+
+
+def _resolve_overlaps(masks: dict[str, np.ndarray], seeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Pixels claimed by two or more bones go to the bone with the nearest seed (in this slice)."""
+    names = list(masks)
+    if len(names) < 2:
+        return masks
+    stack = np.stack([masks[n] for n in names])
+    multi = stack.sum(axis=0) > 1
+    if not multi.any():
+        return masks
+    ii, jj = np.nonzero(multi)
+    d = np.full((len(names), ii.size), np.inf)
+    for b, n in enumerate(names):
+        s = seeds[n]
+        claim = stack[b, ii, jj]
+        dd = np.min((ii[:, None] - s[None, :, 0]) ** 2 + (jj[:, None] - s[None, :, 1]) ** 2, axis=1)
+        d[b] = np.where(claim, dd, np.inf)
+    win = np.argmin(d, axis=0)
+    stack[:, ii, jj] = False
+    stack[win, ii, jj] = True
+    return {n: stack[b] for b, n in enumerate(names)}
+
+
+def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray], extension: dict[str, np.ndarray],
+                    opts: dict) -> dict[str, np.ndarray]:
+    """All long bones of one slice: marrow regions assigned to seeds jointly, then each contour.
+
+    The marrow candidates (:func:`~bonecap.segmentation.cortical.find_marrow`'s criteria, with one
+    muscle level for the slice) are found once; each seed is then matched to one region by
+    a minimum-cost assignment on the seed-to-region distances (Hungarian method), so two
+    bones ~20 mm apart with seeds ~15 mm off (tibia and fibula, radius and ulna) do not both
+    take the nearer marrow, and a bone searched only because its polyline ends near the
+    slice (a joint: the tibia's seed above the knee) yields to a bone that crosses it.
+    """
+    m_slice = cortical.muscle_level(med, inner)
+    out = {name: np.zeros(img.shape, bool) for name in bones}
+    if not np.isfinite(m_slice) or m_slice <= 0:
+        return out
+    o0 = next(iter(opts.values()))
+    lab, n = ndimage.label(body & (med > o0.get("marrow_over_muscle", 1.2) * m_slice), structure=np.ones((3, 3), bool))
+    if n == 0:
+        return out
+    bad = np.zeros(n + 1, bool)
+    bad[0] = True
+    bad[np.unique(lab[body & ~inner])] = True           # fat reaching the skin
+    bad |= np.bincount(lab.ravel(), minlength=n + 1) * pixel_mm ** 2 < o0.get("min_marrow_mm2", 6.0)
+    ids = np.flatnonzero(~bad)
+    if ids.size == 0:
+        return out
+    ii, jj = np.nonzero(np.isin(lab, ids))
+    ll = lab[ii, jj]
+    rows, cost = [], []
+    for name, pts in bones.items():
+        radius = opts[name]["search_radius_mm"] / pixel_mm
+        for p, ext in zip(pts, extension[name]):
+            d = np.sqrt(ndimage.minimum((ii - p[0]) ** 2 + (jj - p[1]) ** 2, ll, ids))
+            c = np.where(d <= radius, d + (radius if ext else 0.0), np.inf)
+            rows.append(name)
+            cost.append(c)
+    cost = np.array(cost)
+    finite = np.isfinite(cost)
+    if not finite.any():
+        return out
+    r_idx, c_idx = linear_sum_assignment(np.where(finite, cost, 1e9))
+    for r, c in zip(r_idx, c_idx):
+        if not finite[r, c]:
+            continue
+        name = rows[r]
+        marrow = density.fill_holes(lab == ids[c])
+        mi, mj = np.nonzero(marrow)
+        box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), img.shape, 65.0 / pixel_mm)
+        m = cortical.muscle_level(med[box], inner[box])
+        if not np.isfinite(m):
+            m = m_slice
+        out[name] |= cortical.cortical_contour(img, marrow, pixel_mm, m, body_mask=body,
+                                               **{k: v for k, v in opts[name].items() if k in _CONTOUR_KEYS})
+    return out
+
+
+_MARROW_KEYS = {"marrow_over_muscle", "min_marrow_mm2"}
+_CONTOUR_KEYS = {"n_rays", "max_radius_mm", "max_cortex_mm", "dip_fraction", "profile_sigma_px", "smooth_rays"}
+_DENSITY_KEYS = {"fraction", "min_neighbours", "exclude_skin_band_mm"}
+
+
+def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
+    ii, jj = np.nonzero(mask)
+    if ii.size == 0:
+        return float("inf")
+    return float(np.sqrt(np.min((ii - seed[0]) ** 2 + (jj - seed[1]) ** 2)))
+
+
+def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask: np.ndarray | None = None,
+                  rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
+                  options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7) -> tuple[np.ndarray, dict[str, int]]:
+    """Label every seeded bone of an axial stack, slice by slice, by its rule.
+
+    Per slice ``k``: each bone whose seed polyline reaches the slice (with
+    ``margin_mm``; :func:`slice_seeds`) is segmented around its crossing
+    point(s) -- long bones by the cortical-edge rule (all of a slice's long
+    bones together, so that two seeds never take the same marrow), the
+    others by the density-threshold rule (the slice's candidates computed
+    once; candidate regions already taken by a long bone are not offered to
+    them). Two bones claiming one pixel: the nearest seed wins. Holes are
+    filled per slice.
+
+    Parameters
+    ----------
+    volume : Volume
+        Axial stack: ``data[i, j, k]`` with ``k`` the slice axis, ``affine``
+        voxel -> LPS mm. Square-ish pixels (the mean in-plane spacing is used).
+    seeds : dict bone name -> array (N, 3)
+        Seed polyline per bone, LPS world mm (see :func:`slice_seeds`).
+    body_mask : ndarray of bool, optional
+        The body (:func:`bonecap.segmentation.skin.segment_body`, computed
+        when not given).
+    rules : dict bone name -> "cortical" | "density", optional
+        Overrides of :func:`default_rule`.
+    progress : bool
+        A progress bar over slices on stderr (:mod:`bonecap.progress`).
+    margin_mm : float
+        How far beyond its polyline's ends a bone is still searched.
+    options : dict bone name -> dict, optional
+        Keyword options per bone for its rule: for cortical bones
+        ``search_radius_mm`` and those of
+        :func:`~bonecap.segmentation.cortical.find_marrow` /
+        :func:`~bonecap.segmentation.cortical.cortical_contour`; for density
+        bones ``max_distance_mm`` and those of
+        :func:`~bonecap.segmentation.density.slice_candidates` (the slice's
+        candidates are computed once per distinct set of those).
+    sigma_px : float
+        In-plane Gaussian of the noise removal, pixels, applied once to the
+        stack (see :func:`~bonecap.segmentation.density.density_candidates`).
+
+    Returns
+    -------
+    labels : ndarray int32, same shape as ``volume.data``
+        0 background, else the bone's id.
+    ids : dict bone name -> int
+        Label ids, 1.. in the order of ``seeds``.
+
+    Raises
+    ------
+    ValueError
+        Not a Volume, an unknown rule, bad seeds, a body mask of another shape.
+
+    References
+    ----------
+    Kojima et al. (bone contours slice by slice, the two rules, seeds).
+    """
+    if not isinstance(volume, Volume):
+        raise ValueError(f"volume must be a bonecap.model.Volume, got {type(volume).__name__}")
+    if not isinstance(seeds, Mapping) or not seeds:
+        raise ValueError("seeds must be a non-empty dict: bone name -> (N, 3) LPS polyline")
+    rules = dict(rules or {})
+    unknown = {b: r for b, r in rules.items() if r not in RULES}
+    if unknown:
+        raise ValueError(f"unknown rule(s) {unknown}; use one of {RULES}")
+    options = {str(k): dict(v) for k, v in (options or {}).items()}
+    data = np.asarray(volume.data)
+    if body_mask is None:
+        body_mask = segment_body(volume)
+    body_mask = np.asarray(body_mask, bool)
+    if body_mask.shape != data.shape:
+        raise ValueError(f"body_mask must have the volume's shape {data.shape}, got {body_mask.shape}")
+    sp = volume.spacing
+    pixel_mm = float(0.5 * (sp[0] + sp[1]))
+
+    names = list(seeds)
+    ids = {n: i + 1 for i, n in enumerate(names)}
+    rule_of = {n: rules.get(n, default_rule(n)) for n in names}
+    per_slice = {n: slice_seeds(volume, seeds[n], margin_mm) for n in names}
+    # seeds only there because of the margin (beyond the polyline's ends) yield to crossings
+    crossing = {n: slice_seeds(volume, seeds[n], 0.0) for n in names}
+    opts = {}
+    for n in names:
+        o = dict(options.get(n, {}))
+        if rule_of[n] == "cortical":
+            o.setdefault("search_radius_mm", _SEARCH_RADIUS_MM.get(_base(n), 30.0))
+            bad = set(o) - _MARROW_KEYS - _CONTOUR_KEYS - {"search_radius_mm"}
+        else:
+            o.setdefault("max_distance_mm", 25.0)
+            bad = set(o) - _DENSITY_KEYS - {"max_distance_mm"}
+        if bad:
+            raise ValueError(f"unknown option(s) {sorted(bad)} for bone {n!r} ({rule_of[n]} rule)")
+        opts[n] = o
+
+    # Noise removal once for the stack (in-plane Gaussian, slices independent), and the body's
+    # interior (without its outer 3 mm, where fat reaches the skin), both shared by all bones.
+    smooth = ndimage.gaussian_filter(data.astype(np.float32, copy=False), (sigma_px, sigma_px, 0.0), mode="nearest")
+    inplane = np.zeros((3, 3, 3), bool)
+    inplane[:, :, 1] = True
+    band_px = max(1, int(round(3.0 / pixel_mm)))
+    interior = ndimage.binary_erosion(body_mask, inplane, iterations=band_px, border_value=1)
+    labels = np.zeros(data.shape, np.int32)
+    K = data.shape[2]
+    it = _progress(range(K), desc="bones", total=K, unit="slice") if progress else range(K)
+    for k in it:
+        here = {n: per_slice[n][k] for n in names if len(per_slice[n][k])}
+        if not here:
+            continue
+        img = data[:, :, k]
+        body = body_mask[:, :, k]
+        masks: dict[str, np.ndarray] = {}
+        long_here = {n: s for n, s in here.items() if rule_of[n] == "cortical"}
+        if long_here:
+            ext = {n: np.full(len(s), len(crossing[n][k]) == 0) for n, s in long_here.items()}
+            masks.update(_cortical_slice(img, smooth[:, :, k], body, interior[:, :, k], pixel_mm, long_here, ext,
+                                         opts))
+        taken = np.zeros(img.shape, bool)
+        for m in masks.values():
+            taken |= m
+        cand_cache: dict[tuple, np.ndarray] = {}
+        for n, pts in here.items():
+            if rule_of[n] != "density":
+                continue
+            o = opts[n]
+            key = tuple(sorted((k_, v) for k_, v in o.items() if k_ in _DENSITY_KEYS))
+            if key not in cand_cache:
+                cand = density.slice_candidates(smooth[:, :, k], body, pixel_mm, sigma_px=0.0, **dict(key))
+                if taken.any() and cand.any():
+                    # regions overlapping a long bone belong to it: not offered to density bones
+                    lab, nl = ndimage.label(cand, structure=np.ones((3, 3), bool))
+                    hit = np.zeros(nl + 1, bool)
+                    hit[np.unique(lab[taken & cand])] = True
+                    hit[0] = True
+                    cand = ~hit[lab]
+                cand_cache[key] = cand
+            region = np.zeros(img.shape, bool)
+            for s in pts:
+                region |= density.density_threshold_slice(img, s, pixel_mm, body, candidates=cand_cache[key],
+                                                          max_distance_mm=o["max_distance_mm"])
+            masks[n] = region
+        masks = {n: m for n, m in masks.items() if m.any()}
+        masks = _resolve_overlaps(masks, here)
+        for n, m in masks.items():
+            labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
+    return labels, ids
