@@ -790,7 +790,7 @@ def _stack_side(path, personal: Skeleton) -> str:
 
 
 def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                            max_icp_mm: float = 4.0) -> tuple[dict[str, Any], dict[str, Any]]:
+                            max_icp_mm: float = 6.0) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
     For each stack: the ulna and radius are segmented with the cortical rule
