@@ -498,10 +498,23 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     targets = _plausible_targets(posed, extracted, strict=labels is None and seeds is None)
     # the template is placed bone by bone already (limbs re-posed toward the MRI)
     placed_ok = labels is None and seeds is None
-    personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
-                                          start_from="placed" if placed_ok else "ancestor",
-                                          max_turn_deg=35.0 if placed_ok else 45.0,
-                                          max_shift_mm=40.0 if placed_ok else np.inf)
+    if targets:
+        personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
+                                              start_from="placed" if placed_ok else "ancestor",
+                                              max_turn_deg=35.0 if placed_ok else 45.0,
+                                              max_shift_mm=40.0 if placed_ok else np.inf)
+    else:
+        # nothing extracted well enough to warp onto (coarse or partial images):
+        # the template as placed on the body is all there is -- said loudly
+        import copy
+
+        personal = copy.deepcopy(posed)
+        personal.world = "lps"
+        warp_report = {"bones": {}, "warning": "no extracted bone passed the plausibility checks: the personal "
+                       "skeleton is the template placed on the body (scaled, limbs re-posed), not warped"}
+        import warnings
+
+        warnings.warn(warp_report["warning"], stacklevel=2)
     # the skull from the head's skin (its thin cortex escapes the slice rules)
     skull_report = skull_from_skin(personal, posed, skin) if "skull" not in targets else None
     lap("warp")

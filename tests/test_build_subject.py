@@ -48,7 +48,9 @@ def test_subject_folder_layout(built, phantom):
     for png in ("personal_skeleton_front.png", "personal_skeleton_side.png", "contours_01_station_1.png"):
         assert (out / "qc" / png).stat().st_size > 5000
     assert {"femur_r", "femur_l"} <= set(report["extracted_bones"])
-    assert (out / "extracted/femur_r.ply").is_file() and (out / "affine_only/femur_r.ply").is_file()
+    assert (out / "extracted/femur_r.ply").is_file()
+    # every bone's origin is accounted for: warped onto its own extraction, carried, or placed (and said so)
+    assert report["warp"].get("bones") or "not warped" in report["warp"].get("warning", "")
     # every marker of the set the static trial holds is bound from it
     assert report["markers_bound"] >= 57
     assert sum(m.source == "static" for m in subj.markers.values()) >= 57
@@ -57,18 +59,21 @@ def test_subject_folder_layout(built, phantom):
     assert len(report["stations"]) == len(truth)
 
 
-def test_personal_femur_is_close_to_the_truth(built, phantom):
-    """Tiny preset: 4 mm pixels and 10 mm slices, so the bounds are loose; docs/benchmarks.md has the default."""
+def test_wild_extractions_do_not_drag_the_skeleton(built, phantom):
+    """Tiny preset: 4 mm pixels and 15 mm slices, too coarse for the slice rules (docs/benchmarks.md has the
+    default phantom). Whatever the extraction, the personal bones stay near the truth: an implausible
+    extraction is rejected and the bone comes from the template placed on the body."""
     from bonecap.subject import read_subject
 
     out, _ = built
     subj = read_subject(out)
-    for side in "rl":
-        truth = read_mesh(phantom / f"truth/meshes/femur_{side}.ply")
-        personal = _surface_mean(subj.skeleton.world_mesh(f"femur_{side}"), truth)
-        # at 10 mm slices the extracted femur itself is ~4 mm off: the warp can
-        # only follow it, so here it is not asked to beat the affine baseline
-        assert personal < 6.0
+    for bone in ("femur_r", "femur_l", "tibia_l", "humerus_r"):
+        truth = read_mesh(phantom / f"truth/meshes/{bone}.ply")
+        personal = _surface_mean(subj.skeleton.world_mesh(bone), truth)
+        assert personal < 11.0, bone
+        ext = out / f"extracted/{bone}.ply"
+        if ext.is_file():
+            assert personal <= _surface_mean(read_mesh(ext), truth) + 1.0, bone
 
 
 def test_evaluate_subject_cli(built, phantom, cli):
