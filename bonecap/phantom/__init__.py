@@ -52,7 +52,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
                 "duration_scale": 1.0, "merged_voxel_mm": 2.0},
     "tiny": {"n_stations": 2, "pixel_mm": 4.0, "pitch_mm": 15.0, "thickness_mm": 15.0, "supersample": 2,
-             "through": 2, "forearm_pixel_mm": 2.0, "forearm_pitch_mm": 5.0, "n_capsules": 6,
+             "through": 2, "forearm_pixel_mm": 1.5, "forearm_pitch_mm": 5.0, "n_capsules": 6,
              "duration_scale": 0.2, "merged_voxel_mm": 6.0},
 }
 
