@@ -546,12 +546,14 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
 
     report: dict[str, Any] = {
         "mode": "mri", "stations": reg_report, "intensity_scales": np.asarray(scales).tolist(),
-        "template_placement": align_report, "skull_from_skin": skull_report, "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report, **marker_report,
+        "template_placement": align_report, "skull_from_skin": skull_report,
+        "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report, **marker_report,
         "timings_s": timings, "seconds": round(sum(timings.values()), 2),
     }
     if forearm_report is not None:
         report["forearm"] = forearm_report
-    qc_data = {"vols": vols, "pieces": pieces, "ids": ids, "extracted": extracted, "skin": skin, "bodies": bodies}
+    qc_data = {"vols": vols, "pieces": pieces if labels is None else [], "ids": ids, "extracted": extracted,
+               "skin": skin, "bodies": bodies}
 
     def qc(folder: Path) -> None:
         from bonecap.qc import write_build_qc
@@ -578,11 +580,14 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         # registered frame: open them over the DICOM in Slicer / ITK-SNAP, fix,
         # and pass them back with --labels
         stations = []
-        for n, ((lab, aff), v) in enumerate(zip(pieces, vols)) if labels is None else ():
+        # (with --labels the user's own map is the segmentation: nothing of ours to write)
+        station_pieces = list(zip(pieces, vols)) if labels is None else []
+        for n, ((lab, aff), v) in enumerate(station_pieces):
             rel = f"labels/station_{n + 1}.nii.gz"
             (folder / "labels").mkdir(parents=True, exist_ok=True)
             write_nifti(Volume(lab.astype(np.int16), aff), folder / rel)
-            stations.append({"index": n + 1, "labels": rel, "source": str(Path(v.metadata["source_files"][0]).parent) if v.metadata.get("source_files") else "",
+            files = v.metadata.get("source_files")
+            stations.append({"index": n + 1, "labels": rel, "source": str(Path(files[0]).parent) if files else "",
                              "nominal_affine": nominal_affines[n].tolist(), "registered_affine": aff.tolist(),
                              "shape": list(lab.shape)})
         (folder / "stations.json").write_text(json.dumps({"ids": ids, "stations": stations}, indent=1))
