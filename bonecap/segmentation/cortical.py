@@ -43,35 +43,15 @@ from scipy import ndimage
 from skimage.draw import polygon2mask
 
 from bonecap.segmentation.density import fill_holes
+from bonecap.segmentation._checks import check_image, check_mask, check_seed
 
 __all__ = ["muscle_level", "local_muscle_level", "find_marrow", "cortical_contour", "cortical_edge_slice"]
 
 _EIGHT = np.ones((3, 3), bool)
 
 
-def _check_image(image, name="image") -> np.ndarray:
-    image = np.asarray(image)
-    if image.ndim != 2:
-        raise ValueError(f"{name} must be one 2-D slice image[i, j], got shape {image.shape}")
-    if image.size == 0:
-        raise ValueError(f"{name} is empty")
-    return image
-
-
 def _check_mask(mask, shape, name) -> np.ndarray:
-    if mask is None:
-        return np.ones(shape, bool)
-    mask = np.asarray(mask)
-    if mask.shape != tuple(shape):
-        raise ValueError(f"{name} must have the image's shape {tuple(shape)}, got {mask.shape}")
-    return mask.astype(bool, copy=False)
-
-
-def _check_seed(seed_ij) -> np.ndarray:
-    seed = np.asarray(seed_ij, dtype=float)
-    if seed.shape != (2,) or not np.isfinite(seed).all():
-        raise ValueError(f"seed_ij must be two finite pixel coordinates (i, j), got {seed_ij!r}")
-    return seed
+    return check_mask(mask, shape, name, allow_none=True)
 
 
 def _positive(name, value):
@@ -100,7 +80,7 @@ def muscle_level(image: np.ndarray, mask: np.ndarray, nbins: int = 64) -> float:
     float
         NaN when the mask is empty.
     """
-    image = _check_image(image)
+    image = check_image(image)
     mask = _check_mask(mask, image.shape, "mask")
     v = image[mask].astype(float)
     if v.size == 0:
@@ -123,8 +103,8 @@ def local_muscle_level(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: n
     of the body is left out (partial volume with air), and the same Gaussian
     as the rule's noise removal is applied first.
     """
-    image = _check_image(image)
-    seed = _check_seed(seed_ij)
+    image = check_image(image)
+    seed = check_seed(seed_ij)
     _positive("pixel_mm", pixel_mm)
     _positive("radius_mm", radius_mm)
     box, _ = _crop_box(seed, image.shape, radius_mm / pixel_mm)
@@ -209,8 +189,8 @@ def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarr
     ----------
     Kojima et al. (the cortical-edge rule: bright marrow in a dark cortex).
     """
-    image = _check_image(image)
-    seed = _check_seed(seed_ij)
+    image = check_image(image)
+    seed = check_seed(seed_ij)
     body = _check_mask(body_mask, image.shape, "body_mask")
     excl = None if exclude is None else _check_mask(exclude, image.shape, "exclude")
     _positive("pixel_mm", pixel_mm)
@@ -309,7 +289,7 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     ----------
     Kojima et al. (the cortical-edge rule).
     """
-    image = _check_image(image)
+    image = check_image(image)
     marrow = _check_mask(marrow, image.shape, "marrow")
     _positive("pixel_mm", pixel_mm)
     _positive("max_radius_mm", max_radius_mm)
@@ -438,8 +418,8 @@ def cortical_edge_slice(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: 
     ----------
     Kojima et al. (the cortical-edge rule).
     """
-    image = _check_image(image)
-    seed = _check_seed(seed_ij)
+    image = check_image(image)
+    seed = check_seed(seed_ij)
     _positive("pixel_mm", pixel_mm)
     body = None if body_mask is None else _check_mask(body_mask, image.shape, "body_mask")
     if muscle is None:

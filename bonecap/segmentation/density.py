@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from bonecap.segmentation._checks import check_image, check_mask, check_seed
 
 __all__ = ["density_candidates", "drop_sparse", "nearest_region", "density_threshold_slice", "slice_candidates",
            "skin_band", "fill_holes"]
@@ -43,29 +44,6 @@ _EIGHT = np.ones((3, 3), bool)
 # The 48-pixel neighbourhood of the rule: the 7x7 window without its centre.
 _NEIGHBOURS_48 = np.ones((7, 7), np.uint8)
 _NEIGHBOURS_48[3, 3] = 0
-
-
-def _check_image(image, name="image") -> np.ndarray:
-    image = np.asarray(image)
-    if image.ndim != 2:
-        raise ValueError(f"{name} must be one 2-D slice image[i, j], got shape {image.shape}")
-    if image.size == 0:
-        raise ValueError(f"{name} is empty")
-    return image
-
-
-def _check_mask(mask, shape, name) -> np.ndarray:
-    mask = np.asarray(mask)
-    if mask.shape != tuple(shape):
-        raise ValueError(f"{name} must have the image's shape {tuple(shape)}, got {mask.shape}")
-    return mask.astype(bool, copy=False)
-
-
-def _check_seed(seed_ij, shape) -> np.ndarray:
-    seed = np.asarray(seed_ij, dtype=float)
-    if seed.shape != (2,) or not np.isfinite(seed).all():
-        raise ValueError(f"seed_ij must be two finite pixel coordinates (i, j), got {seed_ij!r}")
-    return seed
 
 
 def density_candidates(image: np.ndarray, body_mask: np.ndarray, fraction: float = 1 / 3,
@@ -116,8 +94,8 @@ def density_candidates(image: np.ndarray, body_mask: np.ndarray, fraction: float
     ----------
     Kojima et al. (noise removal, top third of intensities).
     """
-    image = _check_image(image)
-    body = _check_mask(body_mask, image.shape, "body_mask")
+    image = check_image(image)
+    body = check_mask(body_mask, image.shape, "body_mask")
     if not 0 < fraction < 1:
         raise ValueError(f"fraction must be in (0, 1), got {fraction}")
     if not sigma_px >= 0:
@@ -160,7 +138,7 @@ def drop_sparse(candidates: np.ndarray, min_neighbours: int = 16) -> np.ndarray:
     ----------
     Kojima et al. (the 48-pixel neighbourhood and the limit of 16).
     """
-    c = _check_image(candidates, "candidates").astype(bool)
+    c = check_image(candidates, "candidates").astype(bool)
     if int(min_neighbours) != min_neighbours or not 0 <= min_neighbours <= 48:
         raise ValueError(f"min_neighbours must be an integer in 0..48, got {min_neighbours}")
     counts = ndimage.correlate(c.view(np.uint8), _NEIGHBOURS_48, mode="constant", cval=0)
@@ -196,8 +174,8 @@ def nearest_region(candidates: np.ndarray, seed_ij, max_distance_px: float | Non
     ----------
     Kojima et al. (the candidate region nearest the seed).
     """
-    c = _check_image(candidates, "candidates").astype(bool)
-    seed = _check_seed(seed_ij, c.shape)
+    c = check_image(candidates, "candidates").astype(bool)
+    seed = check_seed(seed_ij)
     if max_distance_px is not None and not max_distance_px >= 0:
         raise ValueError(f"max_distance_px must be >= 0, got {max_distance_px}")
     out = np.zeros(c.shape, bool)
@@ -238,7 +216,7 @@ def skin_band(body_mask: np.ndarray, width_px: int = 1) -> np.ndarray:
     -------
     ndarray of bool (I, J)
     """
-    body = _check_image(body_mask, "body_mask").astype(bool)
+    body = check_image(body_mask, "body_mask").astype(bool)
     if int(width_px) != width_px or width_px < 1:
         raise ValueError(f"width_px must be a positive integer, got {width_px}")
     return body & ~ndimage.binary_erosion(body, _EIGHT, iterations=int(width_px), border_value=0)
@@ -311,9 +289,9 @@ def density_threshold_slice(image: np.ndarray, seed_ij, pixel_mm: float, body_ma
     ----------
     Kojima et al. (the density-threshold rule).
     """
-    image = _check_image(image)
-    body = _check_mask(body_mask, image.shape, "body_mask")
-    _check_seed(seed_ij, image.shape)
+    image = check_image(image)
+    body = check_mask(body_mask, image.shape, "body_mask")
+    check_seed(seed_ij)
     if not pixel_mm > 0:
         raise ValueError(f"pixel_mm must be positive, got {pixel_mm}")
     if not max_distance_mm >= 0:
@@ -322,7 +300,7 @@ def density_threshold_slice(image: np.ndarray, seed_ij, pixel_mm: float, body_ma
         candidates = slice_candidates(image, body, pixel_mm, fraction=fraction, min_neighbours=min_neighbours,
                                       sigma_px=sigma_px, exclude_skin_band_mm=exclude_skin_band_mm)
     else:
-        candidates = _check_mask(candidates, image.shape, "candidates")
+        candidates = check_mask(candidates, image.shape, "candidates")
     region = nearest_region(candidates, seed_ij, max_distance_mm / pixel_mm)
     return fill_holes(region)
 
