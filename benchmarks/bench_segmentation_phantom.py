@@ -72,7 +72,7 @@ def seed_points(bones: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def random_affine(rng: np.random.Generator, centre: np.ndarray, shift_mm: float = 10.0, linear: float = 0.02
+def random_affine(rng: np.random.Generator, centre: np.ndarray, shift_mm: float = 10.0, linear: float = 0.01
                   ) -> np.ndarray:
     """A 4x4 affine error about ``centre``: ``shift_mm`` translation, +-``linear`` strain/rotation."""
     d = rng.normal(size=3)
@@ -98,7 +98,7 @@ def dice_counts(labels, ids, oracle, oracle_ids):
     return out
 
 
-def run(phantom: Path, seed: int = 0, shift_mm: float = 10.0, linear: float = 0.02, stations=None, quiet=False):
+def run(phantom: Path, seed: int = 0, shift_mm: float = 10.0, linear: float = 0.01, stations=None, quiet=False):
     truth = phantom / "truth"
     skel = json.loads((truth / "skeleton.json").read_text())["bones"]
     oracle_ids = json.loads((truth / "labels.json").read_text())["ids"]
@@ -142,7 +142,7 @@ def main(argv=None):
     ap.add_argument("phantom", type=Path)
     ap.add_argument("--seed", type=int, default=0, help="seed of the random affine seed error")
     ap.add_argument("--shift-mm", type=float, default=10.0)
-    ap.add_argument("--linear", type=float, default=0.02)
+    ap.add_argument("--linear", type=float, default=0.01)
     ap.add_argument("--stations", type=int, nargs="*")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)

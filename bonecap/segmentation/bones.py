@@ -155,7 +155,7 @@ def _resolve_overlaps(masks: dict[str, np.ndarray], seeds: dict[str, np.ndarray]
 
 
 def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray], extension: dict[str, np.ndarray],
-                    opts: dict) -> dict[str, np.ndarray]:
+                    opts: dict, others: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """All long bones of one slice: marrow regions assigned to seeds jointly, then each contour.
 
     The marrow candidates (:func:`~bonecap.segmentation.cortical.find_marrow`'s criteria, with one
@@ -164,6 +164,9 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
     bones ~20 mm apart with seeds ~15 mm off (tibia and fibula, radius and ulna) do not both
     take the nearer marrow, and a bone searched only because its polyline ends near the
     slice (a joint: the tibia's seed above the knee) yields to a bone that crosses it.
+    The seeds of the slice's other (density-rule) bones take part in the assignment too,
+    with a handicap so that a tie goes to the long bone: a region assigned to one of them
+    (the patella's marrow, a seed ~15 mm off, next to the femur's) is left to its rule.
     """
     m_slice = cortical.muscle_level(med, inner)
     out = {name: np.zeros(img.shape, bool) for name in bones}
@@ -190,6 +193,12 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
             c = np.where(d <= radius, d + (radius if ext else 0.0), np.inf)
             rows.append(name)
             cost.append(c)
+    for name, pts in (others or {}).items():
+        radius = opts[name]["max_distance_mm"] / pixel_mm
+        for p in pts:
+            d = np.sqrt(ndimage.minimum((ii - p[0]) ** 2 + (jj - p[1]) ** 2, ll, ids))
+            rows.append(None)
+            cost.append(np.where(d <= radius, d + 0.5 * radius, np.inf))
     cost = np.array(cost)
     finite = np.isfinite(cost)
     if not finite.any():
@@ -199,6 +208,8 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
         if not finite[r, c]:
             continue
         name = rows[r]
+        if name is None:
+            continue
         marrow = density.fill_holes(lab == ids[c])
         mi, mj = np.nonzero(marrow)
         box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), img.shape, 65.0 / pixel_mm)
@@ -215,6 +226,48 @@ _CONTOUR_KEYS = {"n_rays", "max_radius_mm", "max_cortex_mm", "dip_fraction", "pr
 _DENSITY_KEYS = {"fraction", "min_neighbours", "exclude_skin_band_mm"}
 
 
+def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, np.ndarray], volume: Volume,
+                  long_bones: list[str], zone_mm: float) -> None:
+    """Give each long bone its own side of a joint it shares with another (in place).
+
+    Two long bones whose polylines share an end point (femur and tibia at the knee, humerus
+    and ulna at the elbow) both reach into the slices around it, and with seeds ~15 mm off
+    along the limb, the seed-distance rule hands the condyles to either. The joint space
+    (cartilage, meniscus: no marrow) is where the two bones' summed cross-section is
+    smallest: within ``zone_mm`` of the shared point, every slice beyond that minimum on a
+    bone's side is given to that bone.
+    """
+    pts = {n: volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3)) for n in long_bones}
+    dz = float(volume.spacing[2])
+    K = labels.shape[2]
+    for a in long_bones:
+        for b in long_bones:
+            if a >= b or len(pts[a]) < 2 or len(pts[b]) < 2:
+                continue
+            ends_a, ends_b = pts[a][[0, -1]], pts[b][[0, -1]]
+            gap = np.linalg.norm((ends_a[:, None, :] - ends_b[None, :, :]) * volume.spacing, axis=2)
+            ia, ib = np.unravel_index(int(np.argmin(gap)), gap.shape)
+            if gap[ia, ib] > 1.0:                # mm: not a shared joint point
+                continue
+            kj = ends_a[ia, 2]
+            side_a = np.sign(ends_a[1 - ia, 2] - kj)
+            side_b = np.sign(ends_b[1 - ib, 2] - kj)
+            if side_a == 0 or side_a == side_b:
+                continue
+            zone = np.arange(K)[np.abs(np.arange(K) - kj) * dz <= zone_mm]
+            if zone.size < 3:
+                continue
+            la, lb = ids[a], ids[b]
+            both = (labels[:, :, zone] == la) | (labels[:, :, zone] == lb)
+            area = both.sum(axis=(0, 1))
+            ks = int(zone[np.argmin(area)])
+            for z, k in enumerate(zone):
+                if k == ks:
+                    continue
+                owner = la if np.sign(k - ks) == side_a else lb
+                labels[:, :, k][both[:, :, z]] = owner
+
+
 def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
     ii, jj = np.nonzero(mask)
     if ii.size == 0:
@@ -224,7 +277,8 @@ def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
 
 def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask: np.ndarray | None = None,
                   rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
-                  options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7) -> tuple[np.ndarray, dict[str, int]]:
+                  options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
+                  joint_zone_mm: float = 40.0) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -234,7 +288,8 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     others by the density-threshold rule (the slice's candidates computed
     once; candidate regions already taken by a long bone are not offered to
     them). Two bones claiming one pixel: the nearest seed wins. Holes are
-    filled per slice.
+    filled per slice. Long bones meeting at a joint are split at the joint
+    space (see ``joint_zone_mm``).
 
     Parameters
     ----------
@@ -263,6 +318,11 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     sigma_px : float
         In-plane Gaussian of the noise removal, pixels, applied once to the
         stack (see :func:`~bonecap.segmentation.density.density_candidates`).
+    joint_zone_mm : float
+        Two long bones whose polylines share an end point (a joint centre:
+        femur and tibia at the knee) are split at the slice of least summed
+        cross-section (the joint space) within this distance of that point;
+        each side goes to the bone whose polyline lies there.
 
     Returns
     -------
@@ -337,8 +397,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         long_here = {n: s for n, s in here.items() if rule_of[n] == "cortical"}
         if long_here:
             ext = {n: np.full(len(s), len(crossing[n][k]) == 0) for n, s in long_here.items()}
+            others = {n: s for n, s in here.items() if rule_of[n] == "density"}
             masks.update(_cortical_slice(img, smooth[:, :, k], body, interior[:, :, k], pixel_mm, long_here, ext,
-                                         opts))
+                                         opts, others))
         taken = np.zeros(img.shape, bool)
         for m in masks.values():
             taken |= m
@@ -367,4 +428,5 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         masks = _resolve_overlaps(masks, here)
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
+    _split_joints(labels, ids, seeds, volume, [n for n in names if rule_of[n] == "cortical"], joint_zone_mm)
     return labels, ids
