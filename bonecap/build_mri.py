@@ -34,6 +34,7 @@ import numpy as np
 
 from bonecap.errors import DataError, InputError
 from bonecap.model import Mesh, Skeleton, Volume
+from bonecap.motion.paper import minimal_rotation
 
 __all__ = ["MODEL_TO_LPS", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
            "SEGMENTED_BONES"]
@@ -159,18 +160,6 @@ def _rotate_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, R: n
         skeleton.bones[n].bone_to_world = M @ skeleton.bones[n].bone_to_world
 
 
-def _minimal_rotation(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    u = u / np.linalg.norm(u)
-    v = v / np.linalg.norm(v)
-    axis = np.cross(u, v)
-    s = np.linalg.norm(axis)
-    if s < 1e-9:
-        return np.eye(3)
-    return Rotation.from_rotvec(axis / s * np.arctan2(s, float(u @ v))).as_matrix()
-
-
 class _LimbSections:
     """Centroids of the body's separate components per slice (LPS mm): the limbs.
 
@@ -261,7 +250,7 @@ def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float
             if target is None:
                 continue
             # keep the template's length: turn only, toward the target's direction
-            R = _minimal_rotation(d - p, target - p)
+            R = minimal_rotation(d - p, target - p)
             ang = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
             if ang > 60:  # a mismatched component (a hand on the thigh): leave the limb alone
                 continue

@@ -137,6 +137,7 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     ndarray (B, 4, 4)
         The corrected poses (a copy).
     """
+    from bonecap.motion.paper import minimal_rotation
     from bonecap.skeleton.kinematics import proximal_joint
 
     out = poses.copy()
@@ -159,9 +160,7 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         rel_ref = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
         Rn = (Tp @ rel_ref)[:3, :3]
         a_n, a_s = Rn @ (dist - prox), Tc[:3, :3] @ (dist - prox)
-        from bonecap.build_mri import _minimal_rotation
-
-        R = _minimal_rotation(a_n, a_s) @ Rn
+        R = minimal_rotation(a_n, a_s) @ Rn
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = Tc[:3, :3] @ prox + Tc[:3, 3] - R @ prox
