@@ -27,7 +27,8 @@ from bonecap.errors import BonecapError, DataError, FormatError, InputError
 from bonecap.model import Skeleton
 
 __all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
-           "marker_set_from_osim", "check_marker_set", "place_markers", "match_labels"]
+           "marker_set_from_osim", "check_marker_set", "place_markers", "match_labels",
+           "LIMB_LONG_BONES", "limb_side_directions"]
 
 #: Folder of the marker sets shipped with bonecap (beside the package in the source tree).
 MARKER_SET_DIR = Path(__file__).resolve().parents[1] / "marker_sets"
@@ -251,6 +252,59 @@ def _nearest_surface_normals(vertices: np.ndarray, faces: np.ndarray, points: np
     return out
 
 
+#: Long bones of the limbs (name prefixes): their markers sit on the side of the limb.
+LIMB_LONG_BONES = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
+
+
+def limb_side_directions(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                         min_radius_mm: float = 3.0) -> np.ndarray:
+    """Directions from a long bone's shaft axis out through landmarks (bone frame).
+
+    A skin marker over a limb's long bone sits on the *side* of the limb: the
+    thigh marker on the lateral thigh, the wrist markers beside the styloids.
+    The surface normal at the landmark says so poorly: at a styloid or a
+    malleolus it points along the limb (a ray along it runs through the hand
+    or the heel), and on a shaft with a ridge (linea aspera) or after a few
+    millimetres of shape variation the extreme point's normal can turn by
+    60-90 degrees. The bone's own long axis is stable: the line through the
+    mesh centroid along its principal direction (the ISB Y axis of femur,
+    tibia, humerus, radius and ulna is this axis up to a few degrees). The
+    direction is the landmark's offset from that line, perpendicular to it;
+    where the landmark lies on the axis (closer than ``min_radius_mm``) the
+    surface normal with its axial part removed; where that vanishes too, the
+    normal unchanged.
+
+    Parameters
+    ----------
+    vertices : ndarray (V, 3)
+        The bone mesh, bone frame (mm).
+    points : ndarray (M, 3)
+        Landmarks, bone frame (mm).
+    normals : ndarray (M, 3)
+        Unit outward surface normals at the landmarks.
+    min_radius_mm : float
+
+    Returns
+    -------
+    ndarray (M, 3)
+        Unit directions, bone frame.
+    """
+    V = np.asarray(vertices, float)
+    c = V.mean(axis=0)
+    _, _, vt = np.linalg.svd(V - c, full_matrices=False)
+    axis = vt[0]
+    out = np.array(normals, dtype=float, copy=True)
+    for i, p in enumerate(np.asarray(points, float)):
+        r = (p - c) - ((p - c) @ axis) * axis
+        if np.linalg.norm(r) >= min_radius_mm:
+            out[i] = r / np.linalg.norm(r)
+            continue
+        n = out[i] - (out[i] @ axis) * axis
+        if np.linalg.norm(n) > 0.3:
+            out[i] = n / np.linalg.norm(n)
+    return out
+
+
 def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | None = None
                   ) -> dict[str, np.ndarray]:
     """Place markers on a skeleton at its reference pose.
@@ -258,7 +312,9 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
     Each marker sits at its landmark pushed ``offset_mm`` along the outward
     normal of the bone surface nearest to the landmark (averaged over equally
     near triangles, e.g. at a vertex; a bone without a mesh uses the direction
-    from the bone origin). Markers given by ``location`` are
+    from the bone origin). On the limbs' long bones (:data:`LIMB_LONG_BONES`)
+    the push is away from the shaft axis instead (:func:`limb_side_directions`):
+    limb markers sit on the side of the limb, never over the end of a bone. Markers given by ``location`` are
     mapped to the world directly.
 
     Parameters
@@ -288,6 +344,8 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
         offsets = np.array([0.0 if m.location is not None else m.offset_mm for m in defs])
         if bone.mesh is not None and len(bone.mesh.faces) and np.any(offsets):
             normals = _nearest_surface_normals(bone.mesh.vertices, bone.mesh.faces, local)
+            if bone_name.startswith(LIMB_LONG_BONES):
+                normals = limb_side_directions(bone.mesh.vertices, local, normals)
         else:
             normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
         local = local + offsets[:, None] * normals

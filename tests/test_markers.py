@@ -112,3 +112,58 @@ def test_opensim_marker_set_places_like_opensim(shared_data):
     for r in rows:
         ref = np.array([float(r[c]) for c in cols]) * 1000.0  # metres -> mm
         assert np.allclose(placed[r[next(iter(r))]], ref, atol=0.1), r
+
+
+def test_limb_markers_sit_beside_the_shaft_not_over_the_bone_end():
+    """On a limb's long bone the push is away from the shaft axis: a landmark at the bone's tip
+    (a styloid) moves sideways, not along the limb; one on the shaft moves radially even where
+    the surface normal leans (a ridge)."""
+    from bonecap.markers import limb_side_directions
+
+    # a 300 mm cylinder of radius 12 mm along y, as a point cloud (its principal axis is y)
+    t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    y = np.linspace(-150, 150, 61)
+    V = np.array([[12 * np.cos(a), yy, 12 * np.sin(a)] for yy in y for a in t])
+    tip = np.array([[8.0, 150.0, 0.0]])            # near the end, 8 mm off the axis
+    ridge = np.array([[0.0, 20.0, 12.0]])          # on the shaft, +z side
+    leaning = np.array([[0.0, 1.0, 0.0], [-0.7, 0.0, 0.714]])  # normals: along the limb; leaning posteriorly
+    d = limb_side_directions(V, np.vstack([tip, ridge]), leaning)
+    assert np.allclose(d[0], [1.0, 0.0, 0.0], atol=1e-6)
+    assert np.allclose(d[1], [0.0, 0.0, 1.0], atol=1e-6)
+    # on the axis: the normal without its axial part
+    d = limb_side_directions(V, np.array([[0.0, 150.0, 0.0]]), np.array([[0.6, 0.8, 0.0]]))
+    assert np.allclose(d[0], [1.0, 0.0, 0.0], atol=1e-6)
+
+
+def test_pig_limb_markers_on_the_generic_skeleton_point_sideways():
+    """Thigh, knee, shank and wrist markers of Plug-in Gait leave their bone perpendicular to its
+    long axis (within 35 deg), on the anatomical side: thigh and knee lateral, wrist markers
+    beside the styloids (the wrist markers once sat 9 cm up the forearm, pushed along it)."""
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    ms = load_marker_set("plug_in_gait_full_body")
+    names = ["RTHI", "LTHI", "RKNE", "LKNE", "RWRA", "RWRB", "LWRA", "LWRB", "RUPA", "RTIB"]
+    placed = place_markers(ms, sk, names)
+    for n in names:
+        b = sk.bones[ms.markers[n].bone]
+        lm = b.landmark_in_world(ms.markers[n].landmark)
+        d = placed[n] - lm
+        d /= np.linalg.norm(d)
+        y_axis = b.bone_to_world[:3, 1]
+        assert abs(d @ y_axis) < np.sin(np.radians(35)), n
+        if n[1:] in ("THI", "KNE", "UPA"):
+            lateral = b.bone_to_world[:3, 2] * (1 if n[0] == "R" else -1)   # ISB Z points right on both sides
+            assert d @ lateral > 0.7, n
+
+
+def test_surface_extreme_with_the_seed_inside_a_thick_bone():
+    """A seed on a shaft's axis with no vertex within the radius: the most lateral point at the
+    seed's level, not the nearest vertex (which may be on the medial side)."""
+    from bonecap.skeleton.shapes import surface_extreme
+
+    t = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    V = np.array([[14 * np.cos(a), yy, 14 * np.sin(a)] for yy in np.linspace(-100, 100, 21) for a in t])
+    V[5] += [0.0, 0.0, -0.01]                       # nudge: a nearest vertex that is not lateral
+    p = surface_extreme(V, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], radius=10.0)
+    assert p[2] == pytest.approx(14.0) and abs(p[1]) <= 10.0

@@ -785,13 +785,21 @@ def surface_extreme(vertices: np.ndarray, seed, direction, radius: float = 15.0)
     """The surface vertex within ``radius`` of ``seed`` furthest along ``direction``.
 
     The usual way to define a palpable landmark (the most lateral point of the
-    lateral epicondyle...). Falls back to the nearest vertex when none is in range.
+    lateral epicondyle...). A seed deep inside a thick bone (a shaft's axis on a
+    coarse mesh) can have no vertex within ``radius``: then the window is the
+    cylinder of that radius along ``direction`` through the seed (the most
+    lateral point at the seed's level), and only if that is empty too the
+    nearest vertex. (The nearest vertex alone put a femur's "lateral" shaft
+    landmark on its medial side when the mesh was coarse.)
     """
     V = np.asarray(vertices, float)
     seed = np.asarray(seed, float)
     d = unit(direction)
-    near = np.linalg.norm(V - seed, axis=1) <= radius
+    rel = V - seed
+    near = np.linalg.norm(rel, axis=1) <= radius
     if not np.any(near):
-        return V[np.argmin(np.linalg.norm(V - seed, axis=1))].copy()
+        near = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1) <= radius
+    if not np.any(near):
+        return V[np.argmin(np.linalg.norm(rel, axis=1))].copy()
     cand = V[near]
     return cand[np.argmax((cand - seed) @ d)].copy()
