@@ -52,6 +52,7 @@ from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from bonecap.model import Bone, Mesh, Skeleton
+from bonecap.skeleton.isb import refresh_isb_frames
 
 __all__ = ["rigid_icp", "affine_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
            "warp_skeleton"]
@@ -692,7 +693,11 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     - **mesh** (and ``inner_mesh``) and **landmarks**: the warp of the template's.
     - **bone_to_world**: ISB orientation kept -- the rotation is the polar
       rotation of the affine ICP's linear part times the template bone's
-      rotation; the origin is the warped template origin.
+      rotation; the origin is the warped template origin. Then, where the
+      template's frame is defined by landmarks (femur, tibia and the foot,
+      humerus, ulna, radius: :mod:`bonecap.skeleton.isb`), its origin is
+      rebuilt from the warped landmarks (report: ``frame_rebuilt``, the
+      change in mm).
     - **joint centres**: a joint shared by several bones (same name, or a
       side-suffixed name like ``sacroiliac_r``/``sacroiliac``, at the same
       template place) gets **one** position: the weighted mean of where the
@@ -953,6 +958,11 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     meta["personalized"] = {"method": "rigid ICP, affine ICP, Gaussian RBF (Kojima et al. RBFT)",
                             "n_features": n_features, "smoothing": smoothing, "init": init.tolist()}
     out = Skeleton(bones=new_bones, world=world, metadata=meta)
+    # the frames were carried as rigid bodies; origins rebuilt from the warped landmarks mean what the
+    # template's mean (the tibia's origin, between tibia and fibula, drifted by 15-25 mm otherwise)
+    out, reframed = refresh_isb_frames(out, template)
+    for name, change in reframed.items():
+        report_bones[name]["frame_rebuilt"] = {k: round(v, 3) for k, v in change.items()}
     report = {"bones": report_bones,
               "transforms": {n: bone_affine(n).tolist() for n in template.bones},
               "init": init.tolist(), "seconds": time.perf_counter() - t_start}
