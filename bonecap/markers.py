@@ -58,6 +58,12 @@ class MarkerDef:
         directly (OpenSim MarkerSets) rather than by landmark.
     virtual : bool
         A computed point (a joint centre), never expected in a trial.
+    direction : ndarray (3,) or None
+        Where the marker leaves the bone, as a unit vector in the ``bone``
+        frame (X anterior, Y up, Z to the right on both sides), from the
+        set's ``direction`` words (``lateral``, ``posterior`` ...; lateral and
+        medial resolved by the bone's side suffix). ``None``: the surface
+        normal rule of :func:`place_markers`.
     """
 
     name: str
@@ -70,6 +76,7 @@ class MarkerDef:
     location: np.ndarray | None = None
     virtual: bool = False
     optional: bool = False
+    direction: np.ndarray | None = None
 
 
 @dataclass
@@ -105,6 +112,41 @@ def _resolve_path(name_or_path: str | os.PathLike) -> Path:
     return candidate
 
 
+#: Direction words of a marker set, in a bone frame (X anterior, Y up, Z right). ``lateral`` and
+#: ``medial`` depend on the side: the bone name's ``_r`` / ``_l`` suffix.
+DIRECTION_WORDS = {"anterior": (1, 0, 0), "posterior": (-1, 0, 0), "superior": (0, 1, 0), "proximal": (0, 1, 0),
+                   "inferior": (0, -1, 0), "distal": (0, -1, 0), "right": (0, 0, 1), "left": (0, 0, -1)}
+
+
+def _parse_direction(spec: Any, bone: str, name: str, path: Path) -> np.ndarray | None:
+    """``"lateral"``, ``"anterior lateral"``, ``[x, y, z]`` (bone frame) -> unit vector, or None."""
+    if spec is None:
+        return None
+    if isinstance(spec, str):
+        v = np.zeros(3)
+        for word in spec.replace("-", " ").replace(",", " ").split():
+            w = word.lower()
+            if w in ("lateral", "medial"):
+                side = bone[-2:]
+                if side not in ("_r", "_l"):
+                    raise FormatError(f"marker {name!r}: {w!r} needs a side, but bone {bone!r} has no _r/_l suffix",
+                                      path)
+                v += np.array([0.0, 0.0, 1.0 if (side == "_r") == (w == "lateral") else -1.0])
+            elif w in DIRECTION_WORDS:
+                v += np.array(DIRECTION_WORDS[w], float)
+            else:
+                raise FormatError(f"marker {name!r}: unknown direction word {word!r} (use "
+                                  f"{', '.join([*DIRECTION_WORDS, 'lateral', 'medial'])})", path)
+    else:
+        try:
+            v = np.asarray(spec, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise FormatError(f"marker {name!r}: direction must be words or [x, y, z]", path) from None
+    if not np.isfinite(v).all() or np.linalg.norm(v) < 1e-9:
+        raise FormatError(f"marker {name!r}: the direction is zero", path)
+    return v / np.linalg.norm(v)
+
+
 def _parse_marker(name: str, spec: Any, path: Path, optional: bool) -> MarkerDef:
     if not isinstance(spec, dict) or "bone" not in spec:
         raise FormatError(f"marker {name!r} needs a mapping with at least 'bone'", path)
@@ -114,6 +156,7 @@ def _parse_marker(name: str, spec: Any, path: Path, optional: bool) -> MarkerDef
     if location is not None:
         location = np.asarray(location, dtype=float).reshape(3)
     return MarkerDef(
+        direction=_parse_direction(spec.get("direction"), str(spec["bone"]), name, path),
         name=str(name), bone=str(spec["bone"]), landmark=spec.get("landmark"),
         offset_mm=float(spec.get("offset_mm", 0.0)), tracks=list(spec.get("tracks", [spec["bone"]])),
         aliases=[str(a) for a in spec.get("aliases", [])], description=str(spec.get("description", "")),
@@ -314,7 +357,13 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
     near triangles, e.g. at a vertex; a bone without a mesh uses the direction
     from the bone origin). On the limbs' long bones (:data:`LIMB_LONG_BONES`)
     the push is away from the shaft axis instead (:func:`limb_side_directions`):
-    limb markers sit on the side of the limb, never over the end of a bone. Markers given by ``location`` are
+    limb markers sit on the side of the limb, never over the end of a bone.
+    A marker whose set gives a ``direction`` (:attr:`MarkerDef.direction`) is
+    pushed that way: the placement manuals say "lateral thigh", and a
+    direction in the bone frame is the same on every subject, while a
+    surface normal at a landmark differs between two bones by tens of
+    degrees (the lateral malleolus, the tibial shaft: 20-30 mm of marker
+    placement difference between the phantom and its warped template). Markers given by ``location`` are
     mapped to the world directly.
 
     Parameters
@@ -348,6 +397,10 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
                 normals = limb_side_directions(bone.mesh.vertices, local, normals)
         else:
             normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
+        # a direction the set states (the placement manual's "lateral thigh") wins over any surface rule
+        for i, m in enumerate(defs):
+            if m.direction is not None and m.location is None:
+                normals[i] = m.direction
         local = local + offsets[:, None] * normals
         world = local @ bone.bone_to_world[:3, :3].T + bone.bone_to_world[:3, 3]
         out.update({m.name: p for m, p in zip(defs, world)})

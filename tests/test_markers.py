@@ -167,3 +167,23 @@ def test_surface_extreme_with_the_seed_inside_a_thick_bone():
     V[5] += [0.0, 0.0, -0.01]                       # nudge: a nearest vertex that is not lateral
     p = surface_extreme(V, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], radius=10.0)
     assert p[2] == pytest.approx(14.0) and abs(p[1]) <= 10.0
+
+
+def test_direction_words_place_the_marker_that_way(tmp_path):
+    """``direction:`` in a set (bone frame: X anterior, Y up, Z right) beats the surface normal;
+    lateral/medial follow the bone's side suffix; bad words and side-less lateral are clear errors."""
+    ms = tmp_path / "ms.yaml"
+    ms.write_text("name: t\nmarkers:\n  TOP: {bone: block, landmark: top, offset_mm: 7, direction: anterior}\n"
+                  "  SIDE: {bone: block, landmark: side, offset_mm: 3, direction: [0, 0, -2]}\n")
+    placed = place_markers(load_marker_set(ms), _box_skeleton())
+    # top landmark (100, 0, 10) pushed along +X, not along its +Z normal
+    assert np.allclose(placed["TOP"], [107.0, 0.0, 10.0])
+    assert np.allclose(placed["SIDE"], [110.0, 0.0, -3.0])
+    m = load_marker_set("plug_in_gait_full_body").markers
+    assert np.allclose(m["RTHI"].direction, [0, 0, 1]) and np.allclose(m["LTHI"].direction, [0, 0, -1])
+    assert np.allclose(m["RWRB"].direction, [0, 0, -1]) and np.allclose(m["LHEE"].direction, [-1, 0, 0])
+    for bad, msg in (("direction: sideways", "unknown direction word"), ("direction: lateral", "needs a side"),
+                     ("direction: [0, 0, 0]", "zero")):
+        ms.write_text("name: t\nmarkers:\n  TOP: {bone: block, landmark: top, offset_mm: 7, " + bad + "}\n")
+        with pytest.raises(FormatError, match=msg):
+            load_marker_set(ms)
