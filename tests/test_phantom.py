@@ -104,3 +104,27 @@ def test_bad_stature_is_a_clean_error(tmp_path, cli):
     res = cli("phantom", "-o", tmp_path / "p", "--preset", "tiny", "--stature", "5")
     assert res.returncode == 1 and res.stderr.startswith("bonecap: error:")
     assert not (tmp_path / "p").exists()
+
+
+def test_run_beside_returns_the_childs_result_and_raises_its_error(monkeypatch):
+    """The trials stage runs in a forked child: its result comes back, its error is raised here,
+    and with BONECAP_WORKERS=1 it runs in this process (same result)."""
+    import os
+
+    from bonecap.errors import DataError
+    from bonecap.phantom import run_beside
+
+    parent = os.getpid()
+    monkeypatch.setenv("BONECAP_WORKERS", "2")        # a child even on a one-CPU machine
+    job = run_beside(lambda: (os.getpid(), np.arange(5)))
+    pid, arr = job()
+    assert pid != parent and np.array_equal(arr, np.arange(5))
+
+    def boom():
+        raise DataError("no marker RTHI in the set")
+    job = run_beside(boom)
+    with pytest.raises(DataError, match="RTHI"):
+        job()
+    monkeypatch.setenv("BONECAP_WORKERS", "1")
+    pid, _ = run_beside(lambda: (os.getpid(), None))()
+    assert pid == parent

@@ -74,6 +74,11 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
                  generic: str | os.PathLike = "default", preset: str = "default") -> dict[str, Any]:
     """Make a synthetic subject: MRI stations, forearm stacks, trials and the truth.
 
+    The trials are made in a forked child process while this one renders the
+    MRI (:func:`run_beside`; ``BONECAP_WORKERS=1`` keeps everything in one
+    process); ``timings_s["trials"]`` is the child's time, ``trials_wait``
+    what was left to wait for, ``wall_s`` the whole run.
+
     Parameters
     ----------
     out_dir : path-like
@@ -110,6 +115,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     truth = out / "truth"
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
+    t_start = time.perf_counter()
     bar = stage_bar(5, "phantom")
 
     # 1. The subject.
@@ -122,6 +128,18 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     label_meshes = [(_to_lps(skeleton.world_mesh(n)), i) for n, i in bone_ids.items()]
     timings["subject"] = time.perf_counter() - t0
     bar.update()
+
+    # 4. Trials, in a forked child while this process renders the MRI: they need only the subject
+    # and their own seeded generator, so the outputs are the same as one after the other.
+    marker_set = load_marker_set("kojima_paper") if str(generic) == "default" else template_marker_set(generic)
+
+    def trials_stage():
+        t = time.perf_counter()
+        res = make_trials(skeleton, marker_set, out, skin=subject.skin, seed=seed,
+                          duration_scale=cfg["duration_scale"])
+        return res, time.perf_counter() - t
+
+    trials_job = run_beside(trials_stage)
 
     # 2. Whole-body stations.
     release_memory()
@@ -192,14 +210,12 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     timings["forearm"] = time.perf_counter() - t0
     bar.update()
 
-    # 4. Trials.
+    # 4. Trials (started beside the MRI above).
     release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("trials")
-    marker_set = load_marker_set("kojima_paper") if str(generic) == "default" else template_marker_set(generic)
-    trials = make_trials(skeleton, marker_set, out, skin=subject.skin, seed=seed,
-                         duration_scale=cfg["duration_scale"])
-    timings["trials"] = time.perf_counter() - t0
+    trials, timings["trials"] = trials_job()
+    timings["trials_wait"] = time.perf_counter() - t0
     bar.update()
 
     # 5. The rest of the truth.
@@ -236,10 +252,59 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         "trials": sorted(trials.get("trials", {})) if isinstance(trials.get("trials"), dict) else trials.get(
             "trials"),
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
+        "wall_s": round(time.perf_counter() - t_start, 2),
         "out_dir": str(out),
     }
     _write_json(out / "phantom.json", _jsonable(summary))
     return summary
+
+
+def run_beside(fn):
+    """Start ``fn()`` in a forked child process; return a ``join()`` that gives its result.
+
+    The child inherits everything (no pickling of meshes); only the result
+    comes back, through a pipe. Where ``fork`` is missing, with one CPU, or
+    with ``BONECAP_WORKERS=1``, ``fn`` runs here at once and ``join()``
+    returns its result. An error in the child is raised again by ``join()``.
+    """
+    import multiprocessing as mp
+
+    workers = int(os.environ.get("BONECAP_WORKERS", "0")) or (os.cpu_count() or 1)
+    try:
+        ctx = mp.get_context("fork")
+        if workers < 2 or mp.current_process().daemon:
+            raise ValueError("run here")
+    except ValueError:
+        result = fn()
+        return lambda: result
+    recv, send = ctx.Pipe(duplex=False)
+
+    def child():
+        try:
+            send.send(("ok", fn()))
+        except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
+            try:
+                send.send(("error", exc))
+            except Exception:  # noqa: BLE001 - an exception that does not pickle
+                send.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+        finally:
+            send.close()
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    send.close()
+
+    def join():
+        try:
+            status, value = recv.recv()
+        except EOFError:
+            proc.join()
+            raise RuntimeError(f"the phantom's worker process died (exit code {proc.exitcode})") from None
+        proc.join()
+        if status == "error":
+            raise value
+        return value
+    return join
 
 
 def _skeleton_truth(skeleton) -> dict[str, Any]:
