@@ -683,7 +683,8 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
 
 def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> dict[str, Any]:
     """Markers on the personal skin over their landmarks; capsules where found; the static trial binds."""
-    from bonecap.build_subject import bind_static, joint_consistent, pose_to_static, static_markers
+    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, bind_static, joint_consistent, neutral_twist,
+                                       pose_to_static, static_markers)
     from bonecap.markers import place_markers
     from bonecap.subject import MarkerBinding
 
@@ -721,7 +722,9 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         snames, lab = static_markers(static_trial, mset, path=static_path)
         bones = [subject.markers[n].bone for n in snames]
         local = np.array([subject.markers[n].local for n in snames])
-        poses = joint_consistent(sk, pose_to_static(sk, bones, local, lab))
+        # the foot's roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
+        poses = joint_consistent(sk, neutral_twist(sk, pose_to_static(sk, bones, local, lab), FOOT_PREFIXES,
+                                                   FOOT_AXES))
         bound = bind_static(sk, snames, bones, lab, poses)
         moved = {n: float(np.linalg.norm(bound[n].local - subject.markers[n].local)) for n in bound}
         subject.markers.update(bound)

@@ -113,7 +113,15 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
     return motion.transforms[0]
 
 
-def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tibia", "humerus")) -> np.ndarray:
+#: The foot (talus, carrying calcaneus and foot in the solve): its roll about the long axis of the foot,
+#: ankle centre -> head of the 2nd metatarsal (the toe marker's landmark), as Plug-in Gait defines it.
+FOOT_PREFIXES = ("talus", "calcaneus", "foot")
+FOOT_AXES: dict[str, tuple[str, str] | None] = {"talus": ("foot", "metatarsal2_head"), "calcaneus": None,
+                                                 "foot": None}
+
+
+def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tibia", "humerus"),
+                  axes: dict[str, tuple[str, str]] | None = None) -> np.ndarray:
     """Give the long bones of a static pose the reference twist relative to their parents.
 
     A femur, tibia or humerus carries two markers in Plug-in Gait (one of them
@@ -126,11 +134,25 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     rests on the same assumption. Bones are processed parent first, so a
     tibia's neutral twist is relative to its corrected femur.
 
+    The foot has the same weakness about its long axis: heel and toe markers
+    and the ankle centre lie within 2-3 cm of one line, so 15 mm of marker
+    placement error rolled a phantom's foot by 60 degrees. Plug-in Gait
+    takes the foot's roll from the shank; ``prefixes=FOOT_PREFIXES,
+    axes=FOOT_AXES`` does so here (for an MRI subject the reference is the
+    MRI pose: the foot's inversion relative to the shank, not its flexion).
+
     Parameters
     ----------
     skeleton : Skeleton
     poses : ndarray (B, 4, 4)
         ``bone_to_lab`` of the static (parent-first order of ``skeleton.names``).
+    prefixes : tuple of str
+        Bones (name prefixes) to correct.
+    axes : dict, optional
+        Per bone prefix, the ``(bone prefix, landmark)`` that ends its long axis
+        (from its proximal joint centre, same side), or ``None`` for a bone that
+        rides on its parent at the reference relative pose (as the solver
+        carried it); default: its farthest joint centre.
 
     Returns
     -------
@@ -154,10 +176,22 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         except ValueError:
             continue
         others = [c for k, c in b.joint_centres.items() if k != jname]
+        key = next((k for k in (axes or {}) if n.startswith(k)), None)
+        spec = axes[key] if key is not None else None
+        if key is not None and spec is None:
+            others = []                        # rides on its parent (calcaneus and foot on the talus)
+        if spec is not None:
+            other = spec[0] + n[-2:] if n.endswith(("_l", "_r")) else spec[0]
+            ob = skeleton.bones.get(other)
+            if ob is not None and spec[1] in ob.landmarks:
+                others = [np.linalg.solve(b.bone_to_world, np.r_[ob.landmark_in_world(spec[1]), 1.0])[:3]]
+        rel_ref = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
         if not others:
+            # a rider, or nothing to give it a long axis: it keeps its reference pose relative to its
+            # corrected parent
+            out[idx[n]] = Tp @ rel_ref
             continue
         dist = max(others, key=lambda c: np.linalg.norm(c - prox))
-        rel_ref = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
         Rn = (Tp @ rel_ref)[:3, :3]
         a_n, a_s = Rn @ (dist - prox), Tc[:3, :3] @ (dist - prox)
         R = minimal_rotation(a_n, a_s) @ Rn
@@ -287,7 +321,8 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     sk = scale_skeleton(template, scales)
     placed = place_markers(mset, sk, names)
     local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
-    poses = joint_consistent(sk, neutral_twist(sk, pose_to_static(sk, bones, local, lab)))
+    poses = neutral_twist(sk, pose_to_static(sk, bones, local, lab))
+    poses = joint_consistent(sk, neutral_twist(sk, poses, FOOT_PREFIXES, FOOT_AXES))
     markers = bind_static(sk, names, bones, lab, poses)
     # residual of the placed (template) markers at the static pose: how far the
     # manual's positions are from where the markers really were

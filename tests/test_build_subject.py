@@ -165,3 +165,37 @@ def test_static_frames_option(phantom):
         parse_frames("200:300", 100)
     with pytest.raises(InputError, match="START:STOP"):
         parse_frames("a:b", 100)
+
+
+def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
+    """neutral_twist with the foot axes: a static whose foot was rolled about its long axis
+    (ankle -> 2nd metatarsal head) gets the reference roll back; a plantarflexion about the
+    ankle's flexion axis is kept. Calcaneus and foot ride with the talus."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES, neutral_twist
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    foot = [sk.names.index(n) for n in ("talus_r", "calcaneus_r", "foot_r")]
+    ankle = sk.bones["talus_r"].landmark_in_world("ankle")
+    mt2 = sk.bones["foot_r"].landmark_in_world("metatarsal2_head")
+
+    def turned(axis, deg):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+        T[:3, 3] = ankle - T[:3, :3] @ ankle
+        out = ref.copy()
+        out[foot] = T @ ref[foot]
+        return out
+
+    fixed = neutral_twist(sk, turned(mt2 - ankle, 40.0), FOOT_PREFIXES, FOOT_AXES)
+    for i in foot:
+        assert Rotation.from_matrix(fixed[i][:3, :3].T @ ref[i][:3, :3]).magnitude() < np.radians(0.01)
+    flexion_axis = np.cross(mt2 - ankle, [0.0, 1.0, 0.0])          # perpendicular to the foot, horizontal
+    flexed = turned(flexion_axis, 25.0)
+    kept = neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES)
+    for i in foot:
+        assert Rotation.from_matrix(kept[i][:3, :3].T @ flexed[i][:3, :3]).magnitude() < np.radians(0.01)
