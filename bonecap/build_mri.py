@@ -426,9 +426,13 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
 
     # 2. skin
     bar.set_postfix_str("skin")
-    bodies = [segment_body(v) for v in vols]
-    skin = mesh_from_slices([(b, v.affine) for b, v in zip(bodies, vols)], voxel_mm=4.0,
+    # the body masks (Otsu's boundary) place the template and bound the density rule; the skin's own
+    # masks (the half-way boundary) make the skin mesh the markers are put on
+    both = [segment_body(v, skin=True) for v in vols]
+    bodies = [b for b, _ in both]
+    skin = mesh_from_slices([(s, v.affine) for (_, s), v in zip(both, vols)], voxel_mm=4.0,
                             target_faces=40000) if vols else None
+    del both
     lap("skin")
     bar.update()
 

@@ -101,9 +101,9 @@ def test_skin_edge_is_half_way_not_at_otsus_log_level():
     data = np.stack([ndimage.gaussian_filter(inside, 2.5 / px)] * 3, axis=-1) * 300.0
     data = np.hypot(data + rng.normal(0, 4, data.shape), rng.normal(0, 4, data.shape))   # Rician
     vol = Volume(data, np.diag([px, px, 5.0, 1.0]))
-    area = skin.segment_body(vol).sum(axis=(0, 1)) * px * px
+    area = skin.segment_body(vol, skin=True)[1].sum(axis=(0, 1)) * px * px
     radius = np.sqrt(area / np.pi)
     assert np.all(np.abs(radius - 60.0) < 1.0), radius
-    otsu_only = np.sqrt(skin.segment_body(vol, threshold=skin.body_threshold(vol)).sum(axis=(0, 1)) * px * px / np.pi)
+    otsu_only = np.sqrt(skin.segment_body(vol).sum(axis=(0, 1)) * px * px / np.pi)
     assert np.all(otsu_only - 60.0 > 1.5)                       # what the half-way level fixes
     assert np.all(otsu_only - radius > 1.0)
