@@ -769,13 +769,17 @@ def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, m
     origins, dirs = np.array(origins), np.array(dirs)
     out = dict(placed)
     try:
-        locs, ray_idx, _ = tm.ray.intersects_location(origins, dirs, multiple_hits=False)
+        locs, ray_idx, tri = tm.ray.intersects_location(origins, dirs, multiple_hits=False)
     except Exception:  # noqa: BLE001 - no ray engine: keep the manual's depths
         return placed
-    for loc, r in zip(locs, ray_idx):
+    for loc, r, f in zip(locs, ray_idx, tri):
         depth = np.linalg.norm(loc - origins[r])
         if depth < 80.0:  # a hit beyond 8 cm is another body part (the other leg, an arm)
-            out[names[r]] = loc + dirs[r] * marker_radius_mm
+            # the marker rests on the skin: its centre is one radius out along the skin's normal there,
+            # not along the ray (which meets the side of a shank or a thigh obliquely)
+            n = tm.face_normals[f]
+            n = n if n @ dirs[r] > 0 else -n
+            out[names[r]] = loc + n * marker_radius_mm
     return out
 
 
