@@ -107,3 +107,13 @@ def test_skin_edge_is_half_way_not_at_otsus_log_level():
     otsu_only = np.sqrt(skin.segment_body(vol).sum(axis=(0, 1)) * px * px / np.pi)
     assert np.all(otsu_only - 60.0 > 1.5)                       # what the half-way level fixes
     assert np.all(otsu_only - radius > 1.0)
+
+
+def test_joint_space_is_the_valley_not_the_minimum():
+    """Femoral shaft (small) -> condyles (large) -> joint space (dip) -> plateau (large) -> tibial
+    shaft: the split goes in the dip even where the shaft's section is smaller; no valley -> minimum."""
+    from bonecap.segmentation.bones import _joint_space
+
+    profile = np.array([300, 320, 500, 900, 1400, 1500, 700, 1300, 1200, 800, 500, 450])
+    assert _joint_space(profile) == 6
+    assert _joint_space(np.array([900, 700, 500, 400, 300])) == 4

@@ -233,9 +233,10 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
     Two long bones whose polylines share an end point (femur and tibia at the knee, humerus
     and ulna at the elbow) both reach into the slices around it, and with seeds ~15 mm off
     along the limb, the seed-distance rule hands the condyles to either. The joint space
-    (cartilage, meniscus: no marrow) is where the two bones' summed cross-section is
-    smallest: within ``zone_mm`` of the shared point, every slice beyond that minimum on a
-    bone's side is given to that bone.
+    (cartilage, meniscus: no marrow) is the deepest valley of the two bones' summed
+    cross-section within ``zone_mm`` (at most 15 % of the shorter bone's polyline) of the
+    shared point (:func:`_joint_space`): every slice beyond it on a bone's side is given to
+    that bone.
     """
     pts = {n: volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3)) for n in long_bones}
     dz = float(volume.spacing[2])
@@ -254,18 +255,44 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
             side_b = np.sign(ends_b[1 - ib, 2] - kj)
             if side_a == 0 or side_a == side_b:
                 continue
-            zone = np.arange(K)[np.abs(np.arange(K) - kj) * dz <= zone_mm]
+            # the seeds' joint point can be 20 mm off: the zone must reach the joint space from there,
+            # yet stay on the short bones of an elbow (15 % of the shorter bone)
+            length = min(float(np.sum(np.linalg.norm(np.diff(p, axis=0) * volume.spacing, axis=1)))
+                         for p in (pts[a], pts[b]))
+            zone_ab = min(zone_mm, 0.15 * length)
+            zone = np.arange(K)[np.abs(np.arange(K) - kj) * dz <= zone_ab]
             if zone.size < 3:
                 continue
             la, lb = ids[a], ids[b]
             both = (labels[:, :, zone] == la) | (labels[:, :, zone] == lb)
-            area = both.sum(axis=(0, 1))
-            ks = int(zone[np.argmin(area)])
+            area = both.sum(axis=(0, 1)).astype(float)
+            ks = int(zone[_joint_space(area)])
             for z, k in enumerate(zone):
                 if k == ks:
                     continue
                 owner = la if np.sign(k - ks) == side_a else lb
                 labels[:, :, k][both[:, :, z]] = owner
+
+
+def _joint_space(area: np.ndarray) -> int:
+    """Index of the joint space in a profile of summed cross-sections along a joint's zone.
+
+    The joint space is a valley between two peaks (femoral condyles above, tibial plateau below),
+    not the profile's minimum: with the seeds' joint point 20 mm off, the zone reaches the femoral
+    shaft, whose section is smaller than the joint space's, and the minimum handed the condyles to
+    the tibia. The deepest valley -- the slice whose area lies furthest below the lower of the
+    largest areas on either side of it -- is the joint space; a profile without a valley (the zone
+    inside one bone) falls back to the minimum.
+    """
+    a = np.asarray(area, float)
+    if a.size < 3:
+        return int(np.argmin(a))
+    left = np.maximum.accumulate(a)
+    right = np.maximum.accumulate(a[::-1])[::-1]
+    depth = np.minimum(left, right) - a
+    depth[[0, -1]] = -np.inf
+    k = int(np.argmax(depth))
+    return k if depth[k] > 0 else int(np.argmin(a))
 
 
 def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
@@ -278,7 +305,7 @@ def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
 def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask: np.ndarray | None = None,
                   rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
                   options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
-                  joint_zone_mm: float = 40.0) -> tuple[np.ndarray, dict[str, int]]:
+                  joint_zone_mm: float = 60.0) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -320,8 +347,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         stack (see :func:`~bonecap.segmentation.density.density_candidates`).
     joint_zone_mm : float
         Two long bones whose polylines share an end point (a joint centre:
-        femur and tibia at the knee) are split at the slice of least summed
-        cross-section (the joint space) within this distance of that point;
+        femur and tibia at the knee) are split at the deepest valley of their summed
+        cross-section (the joint space) within this distance of that point (at most 15 %
+        of the shorter bone's length);
         each side goes to the bone whose polyline lies there.
 
     Returns
