@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from bonecap.errors import DataError, InputError
-from bonecap.model import Mesh, Skeleton, Volume
+from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
 
 __all__ = ["MODEL_TO_LPS", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
@@ -848,7 +848,10 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         vols = load_stations([d])
         v = max(vols, key=lambda x: x.data.size)
         body = segment_body(v)
-        seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in ("elbow", "distal_radioulnar")
+        # each bone's own axis: the ulna from the elbow to its head, the radius from its head to the wrist
+        # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided)
+        axis_joints = {ulna_n: ("elbow", "distal_radioulnar"), radius_n: ("proximal_radioulnar", "wrist")}
+        seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in axis_joints[n]
                               if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
         lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
         Ts = {}
@@ -857,7 +860,10 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
                 raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
             target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
             pts = bone.mesh.transformed(bone.bone_to_world).vertices
-            T, res = rigid_icp(pts, target)
+            if n == ulna_n:
+                T, res = rigid_icp(pts, target)
+            else:
+                T, res = _radius_icp(pts, target, Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U)
             Ts[n] = T @ bone.bone_to_world
             report["stacks"].setdefault(str(d), {})[f"{n}_icp_mm"] = float(np.mean(res))
             if np.mean(res) > max_icp_mm:
@@ -881,6 +887,41 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     report["twists_deg"] = theta.tolist()
     report["used"] = True
     return out, report
+
+
+def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone,
+                step_deg: float = 45.0) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid ICP of the radius into a forearm stack, started around the registered ulna.
+
+    ICP is local (~20 degrees), and a stack at 172 degrees of pronation holds the
+    radius turned half a turn about the ulna from the MRI pose: started there,
+    it settled 144 degrees off. The radius turns about the radio-ulnar axis (the
+    ulna's proximal and distal radio-ulnar joints), so ICP starts from the ulna's
+    registration followed by turns about that axis every ``step_deg``; the
+    lowest mean residual wins.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.skeleton.warp import rigid_icp
+
+    ends = [ulna.landmark_in_world(j) for j in ("proximal_radioulnar", "distal_radioulnar")
+            if j in ulna.joint_centres]
+    starts = [ulna_move]
+    if len(ends) == 2:
+        a = ulna_move[:3, :3] @ ends[0] + ulna_move[:3, 3]
+        b = ulna_move[:3, :3] @ ends[1] + ulna_move[:3, 3]
+        axis = (b - a) / np.linalg.norm(b - a)
+        for ang in np.arange(step_deg, 360.0, step_deg):
+            R = np.eye(4)
+            R[:3, :3] = Rotation.from_rotvec(np.radians(ang) * axis).as_matrix()
+            R[:3, 3] = a - R[:3, :3] @ a
+            starts.append(R @ ulna_move)
+    best = None
+    for C in starts:
+        T, res = rigid_icp(pts, target, init=C)
+        if best is None or float(np.mean(res)) < float(np.mean(best[1])):
+            best = (T, res)
+    return best
 
 
 def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
