@@ -1939,8 +1939,9 @@ def _build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = No
             # decimation (with its retries) would cost more than the meshing itself
             d.target_faces = 0
             d.inner_target_faces = 0
-    # coarse bones mesh in ~3 s: forking workers and shipping the meshes back costs more
-    _mesh_all(todo, workers=1 if resolution > 1.0 else None)
+    # in worker processes at every resolution: the coarse (tiny phantom) bones too, 0.6 s sooner on 2 cores
+    # and 50 MB less in this process (2026-11-24)
+    _mesh_all(todo)
     all_r = {**mid, **side_r}
     all_l = {**mid, **side_l}
     pelvis = _pelvis_frame(side_r, side_l)
