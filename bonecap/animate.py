@@ -295,7 +295,8 @@ def write_outputs(out_dir: Path, stem: str, subject: Subject, trial: Trial, moti
             np.savez_compressed(fh, bones=np.array(motion.bones), times=motion.times,
                                 first_frame=np.int64(motion.first_frame), transforms=motion.transforms,
                                 valid=motion.valid, markers=np.array(motion.marker_labels),
-                                residuals=motion.residuals)
+                                residuals=motion.residuals,
+                                **{k: np.asarray(v, bool) for k, v in motion.flags.items()})
     angles = joint_angles(sk, motion)
     paths["angles"] = out_dir / f"{stem}_angles.csv"
     _write_angles_csv(paths["angles"], motion.times, angles)
@@ -358,6 +359,8 @@ def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike],
             "markers_used": len(names), "markers_missing": missing,
             "bones": len(motion.bones),
             "valid_share": float(motion.valid.mean()),
+            "flags": {k: {motion.bones[i]: int(n) for i, n in enumerate(np.asarray(v).sum(axis=0)) if n}
+                      for k, v in motion.flags.items()},
             "residual_median_mm": float(np.nanmedian(motion.residuals)) if np.isfinite(motion.residuals).any()
             else None,
             "solve_seconds": round(t_solve, 3),
@@ -380,4 +383,7 @@ def format_report(report: dict[str, Any]) -> str:
                      f"{r['frames_per_second']:.0f} frames/s -> {r['outputs']['glb']}")
         if r["markers_missing"]:
             lines.append(f"  missing: {', '.join(r['markers_missing'])}")
+        for flag, per_bone in r.get("flags", {}).items():
+            if per_bone:
+                lines.append(f"  {flag}: " + ", ".join(f"{b} {n} frames" for b, n in per_bone.items()))
     return "\n".join(lines)

@@ -338,13 +338,17 @@ class Motion:
         ``bone_to_lab`` transforms in mm; ``NaN`` where a bone is not solved.
     valid : ndarray of bool, shape (F, B)
         ``False`` where the pose is missing or was flagged (too few markers,
-        gap longer than allowed, model clamped).
+        gap longer than allowed).
     first_frame : int
         Frame number of the first frame in the source trial.
     marker_labels : list of str
     residuals : ndarray, shape (F, M)
         Distance in mm between each measured marker and where the solved
         skeleton puts it; ``NaN`` where the marker is missing.
+    flags : dict of str -> ndarray of bool, shape (F, B)
+        Named per-frame warnings that leave the pose valid, e.g.
+        ``"forearm_clamped"``: the forearm model's twist was outside its fitted
+        range and held at the range's end.
     """
 
     bones: list[str]
@@ -354,6 +358,7 @@ class Motion:
     first_frame: int = 1
     marker_labels: list[str] = field(default_factory=list)
     residuals: np.ndarray | None = None
+    flags: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         self.bones = [str(b) for b in self.bones]

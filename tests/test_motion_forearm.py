@@ -182,7 +182,9 @@ def test_fit_on_phantom_mri_poses_and_use_in_lsq(phantom):
     i = list(d["bones"]).index("radius_r")
     deg = rotation_angle_deg(mo.transforms[:, i], d["transforms"][:, i])
     assert np.nanmedian(deg) < 5.0
-    # twists beyond the fitted range are clamped and flagged
+    # twists beyond the fitted range are clamped and flagged; the clamped pose stays a pose (valid)
     th_trial = d["forearm_twist_deg_r"]
-    assert not mo.valid[th_trial > 179.0, i].any()
+    clamped = mo.flags["forearm_clamped"][:, i]
+    assert clamped[th_trial > 179.0].all() and mo.valid[th_trial > 179.0, i].all()
+    assert not clamped[(th_trial > 20) & (th_trial < 120)].any()
     assert mo.valid[(th_trial > 20) & (th_trial < 120), i].all()

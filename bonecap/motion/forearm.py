@@ -159,6 +159,14 @@ class ForearmModel:
     unit : {"quarter_turn", "deg", "rad"}
     theta_range_deg : tuple of 2 float
         Fitted range; outside it ``theta`` is clamped and the pose flagged.
+    theta_zero : {"reference", "anatomical"}
+        Where ``theta`` is 0. ``"reference"``: at the subject's reference pose
+        (a model fitted from the subject's forearm stacks, whose 0 degree stack
+        is the MRI pose). ``"anatomical"``: full supination, where the wrist
+        line is parallel to the elbow line (raw angle 0) -- the paper's
+        definition, used with its published coefficients: a subject without
+        stacks has no measured 0 degree pose, and the static trial's forearm is
+        wherever the subject held it (pyomeca's static: ~68 degrees).
     """
 
     ulna_rotation: tuple
@@ -169,10 +177,13 @@ class ForearmModel:
     radius_elbow: tuple
     unit: str = "quarter_turn"
     theta_range_deg: tuple = (0.0, 180.0)
+    theta_zero: str = "reference"
 
     def __post_init__(self):
         if self.unit not in _UNITS:
             raise ValueError(f"unit must be one of {sorted(_UNITS)}, got {self.unit!r}")
+        if self.theta_zero not in ("reference", "anatomical"):
+            raise ValueError(f"theta_zero must be 'reference' or 'anatomical', got {self.theta_zero!r}")
         lo, hi = self.theta_range_deg
         if not lo < hi:
             raise ValueError(f"theta_range_deg must be increasing, got {self.theta_range_deg}")
@@ -213,7 +224,7 @@ PAPER_MODEL = ForearmModel(
     ulna_rotation=(0.008, -0.134, 0.0), radius_rotation=(-0.127, 1.101, 0.0),
     ulna_wrist=(-0.2348, 0.4337, -0.7492), ulna_elbow=(0.1564, -0.4052, 0.2864),
     radius_wrist=(0.0851, -0.2781, -0.5283), radius_elbow=(-0.158, 0.894, -1.0465),
-    unit="quarter_turn", theta_range_deg=(0.0, 180.0))
+    unit="quarter_turn", theta_range_deg=(0.0, 180.0), theta_zero="anatomical")
 
 
 def _segment_point(radial_side, other, u):
@@ -439,9 +450,11 @@ def forearm_poses_from_markers(skeleton, forearm, labels: Sequence[str], marker_
                                ulna_to_lab: Mapping[str, np.ndarray] | None = None) -> dict[str, dict]:
     """Ulna and radius poses for every side whose four markers a trial has (used by ``solve_lsq``).
 
-    The reference (``theta = 0``) is the skeleton's reference pose: its markers
-    are placed by ``marker_local`` on the bones at ``bone_to_world``, the
-    elbow frame and the raw twist there are ``E_ref`` and ``zero_deg``.
+    The bones' ``theta = 0`` pose is the skeleton's reference pose: its markers
+    are placed by ``marker_local`` on the bones at ``bone_to_world`` and the
+    elbow frame there is ``E_ref``. ``theta`` is counted from the raw twist of
+    those reference markers (``model.theta_zero == "reference"``) or from full
+    anatomical supination (``"anatomical"``, raw angle 0).
 
     Parameters
     ----------
@@ -474,7 +487,7 @@ def forearm_poses_from_markers(skeleton, forearm, labels: Sequence[str], marker_
         ref = np.array([skeleton.bones[marker_bones[i]].bone_to_world[:3, :3] @ marker_local[i]
                         + skeleton.bones[marker_bones[i]].bone_to_world[:3, 3] for i in idx])
         E_ref = elbow_frame(*ref)[0]
-        zero = float(forearm_twist(*ref, side=side)[0])
+        zero = 0.0 if model.theta_zero == "anatomical" else float(forearm_twist(*ref, side=side)[0])
         m = measured[:, idx].copy()
         U_ref = skeleton.bones[ulna].bone_to_world
         carry_r = None

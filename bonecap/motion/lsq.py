@@ -510,9 +510,10 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     -------
     Motion
         ``transforms`` (F, B, 4, 4) bone -> lab (mm) for every bone of the
-        skeleton, NaN where invalid; ``valid`` (F, B) -- also False where the
-        forearm model was clamped outside its fitted range; ``residuals``
-        (F, M) mm.
+        skeleton, NaN where invalid; ``valid`` (F, B); ``residuals`` (F, M)
+        mm; ``flags["forearm_clamped"]`` (F, B) where the forearm model's
+        twist was outside its fitted range and held at its end (the pose
+        stays valid).
 
     Raises
     ------
@@ -597,6 +598,19 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         schedule += [(k, None) for k in range(max(2, int(n_sweeps) // 2))]
     for k, step in schedule:
         if step == "model":
+            # An ulna its markers cannot hold (one styloid marker and the elbow, as in Plug-in Gait)
+            # takes the model's own ulna pose, carried by the four forearm markers' elbow frame.
+            by_markers = forearm_poses_from_markers(skeleton, forearm, labels, marker_bones, local, meas)
+            held = set()
+            for b in model_bones:
+                u = b.replace("radius", "ulna")
+                su = plan.segment_of[u]
+                if u in by_markers and segs[su].root == u:
+                    gap = ~ok[su] & np.isfinite(by_markers[u]["transforms"]).all(axis=(1, 2))
+                    T[su][gap] = by_markers[u]["transforms"][gap]
+                    ok[su] |= gap
+                    if gap.any():
+                        held.add(u)      # the next sweeps could not hold it either: keep it
             ulnas = {b.replace("radius", "ulna"): T[plan.segment_of[b.replace("radius", "ulna")]]
                      for b in model_bones}
             poses = forearm_poses_from_markers(skeleton, forearm, labels, marker_bones, local, meas,
@@ -605,7 +619,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 model_poses[b] = poses[b]
                 T[plan.segment_of[b]] = poses[b]["transforms"]
                 ok[plan.segment_of[b]] = np.isfinite(poses[b]["transforms"]).all(axis=(1, 2))
-            fixed = set(model_bones)
+            fixed = set(model_bones) | held
             free = [s for s in range(S) if segs[s].root not in fixed]
             order_down, order_up = free, free[::-1]
             continue
@@ -665,18 +679,22 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     names = skeleton.names
     out = np.full((F, len(names), 4, 4), np.nan)
     valid = np.zeros((F, len(names)), bool)
+    clamped = np.zeros((F, len(names)), bool)
     for i, n in enumerate(names):
         s = plan.segment_of[n]
         out[:, i] = T[s] @ segs[s].rest_to_root[n]
         valid[:, i] = valid_seg[s]
         if n in model_poses:
-            valid[:, i] &= ~model_poses[n]["clamped"]
+            # held at the end of the model's fitted range: a pose, flagged, not a gap (a few degrees of
+            # hyper-pronation or -supination are common in real trials)
+            clamped[:, i] = model_poses[n]["clamped"] & valid[:, i]
     out[~np.isfinite(out).all(axis=(2, 3))] = np.nan
     bi = np.array([names.index(b) for b in marker_bones], int)
     pred = _apply(out[:, bi], local[None])
     residuals = np.linalg.norm(pred - meas, axis=-1)
     return Motion(bones=names, times=np.arange(F) / float(rate_hz), transforms=out, valid=valid,
-                  first_frame=int(first_frame), marker_labels=labels, residuals=residuals)
+                  first_frame=int(first_frame), marker_labels=labels, residuals=residuals,
+                  flags={"forearm_clamped": clamped} if model_poses else {})
 
 
 # ----------------------------------------------------------------------------- filtering

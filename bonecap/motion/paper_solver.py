@@ -157,4 +157,4 @@ def solve_paper(subject, names: list[str], measured: np.ndarray, *, max_gap_fram
     Tm = T[:, idx]
     pred = np.einsum("fmij,mj->fmi", Tm[..., :3, :3], local) + Tm[..., :3, 3]
     resid = np.linalg.norm(pred - measured, axis=-1)
-    return Motion(base.bones, base.times, T, valid, base.first_frame, list(names), resid)
+    return Motion(base.bones, base.times, T, valid, base.first_frame, list(names), resid, flags=dict(base.flags))
