@@ -339,8 +339,24 @@ def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.n
     return [(data.astype(np.int32), v.affine)], ids
 
 
-def load_seeds(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Seeds from YAML: ``bone: [[x, y, z], ...]`` in LPS mm (world), a point or a polyline."""
+def load_seeds(path: str | os.PathLike, *, with_settings: bool = False):
+    """Seeds from YAML: ``bone: [[x, y, z], ...]`` in LPS mm (world), a point or a polyline.
+
+    The seeds may sit under a ``seeds:`` key, beside two optional settings for
+    :func:`bonecap.segmentation.bones.segment_bones`: ``margin_mm`` (how far
+    beyond a polyline's ends a bone is still searched; seeds placed by eye
+    over a bone's whole extent want a slice or so, the default 20 mm suits
+    joint-to-joint lines), ``options`` (bone -> keyword options of its
+    rule, e.g. ``marrow_over_muscle`` for a sequence whose marrow is much
+    brighter than muscle) and ``rules`` (bone -> ``cortical`` | ``density``,
+    e.g. a patella whose cortex shows as clearly as a long bone's).
+
+    Returns
+    -------
+    dict bone -> ndarray (N, 3)
+        With ``with_settings``: ``(seeds, {"margin_mm": ..., "options": ...})``
+        holding only the settings the file gives.
+    """
     import yaml
 
     path = Path(path)
@@ -363,7 +379,34 @@ def load_seeds(path: str | os.PathLike) -> dict[str, np.ndarray]:
         if a.ndim != 2 or a.shape[1] != 3 or not np.isfinite(a).all():
             raise InputError(f"seed of {bone!r} must be a point or a list of [x, y, z] in mm", path)
         out[str(bone)] = a
-    return out
+    if not with_settings:
+        return out
+    settings: dict[str, Any] = {}
+    if isinstance(doc, dict) and "seeds" in doc:
+        if "margin_mm" in doc:
+            try:
+                settings["margin_mm"] = float(doc["margin_mm"])
+            except (TypeError, ValueError):
+                settings["margin_mm"] = -1.0
+            if not settings["margin_mm"] >= 0:
+                raise InputError(f"margin_mm must be a number >= 0, got {doc['margin_mm']!r}", path)
+        opts = doc.get("options")
+        if opts is not None:
+            if not isinstance(opts, dict) or not all(isinstance(o, dict) for o in opts.values()):
+                raise InputError("options must map bone names to {option: value}", path)
+            unknown = sorted(set(opts) - set(out))
+            if unknown:
+                raise InputError(f"options for bones without seeds: {', '.join(map(str, unknown))}", path)
+            settings["options"] = {str(b): dict(o) for b, o in opts.items()}
+        rules = doc.get("rules")
+        if rules is not None:
+            if not isinstance(rules, dict) or not all(r in ("cortical", "density") for r in rules.values()):
+                raise InputError("rules must map bone names to 'cortical' or 'density'", path)
+            unknown = sorted(set(rules) - set(out))
+            if unknown:
+                raise InputError(f"rules for bones without seeds: {', '.join(map(str, unknown))}", path)
+            settings["rules"] = {str(b): str(r) for b, r in rules.items()}
+    return out, settings
 
 
 def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike = "default",
@@ -412,7 +455,11 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     reg_report: list = []
     scales = np.ones(len(vols))
     nominal_affines = [v.affine.copy() for v in vols]
-    if vols:
+    # one local series with the user's seeds or labels (a knee, an elbow) is segmented in its own
+    # slices, whatever their orientation -- the slice rules work in pixel space, as the paper's did; a
+    # whole body must be axial stations (the template is placed from their head-to-feet extent)
+    local_scan = len(vols) == 1 and (seeds is not None or labels is not None)
+    if vols and not local_scan:
         try:
             vols = order_stations(vols)
             nominal_affines = [v.affine.copy() for v in vols]
@@ -447,8 +494,9 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     else:
         # 3. seeds from the template roughly aligned to the body
         bar.set_postfix_str("seeds")
+        seg_settings: dict[str, Any] = {}
         if seeds is not None:
-            seed_map = load_seeds(seeds)
+            seed_map, seg_settings = load_seeds(seeds, with_settings=True)
         else:
             top, bottom, centre_at = _body_extent(vols, bodies)
             if not _covers_whole_body(vols, bodies):
@@ -465,7 +513,10 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         pieces = []
         ids: dict[str, int] = {}
         for v, body in zip(vols, bodies):
-            lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False)
+            try:
+                lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False, **seg_settings)
+            except ValueError as exc:     # an unknown option in the seeds file
+                raise InputError(str(exc), seeds) from None
             # one id space across stations
             remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
             for name, i in station_ids.items():

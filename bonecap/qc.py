@@ -58,8 +58,9 @@ def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.n
         for lab in np.unique(labels[:, :, k]):
             if lab == 0:
                 continue
-            ax.contour((labels[:, :, k] == lab).T.astype(float), levels=[0.5], colors=[cmap(int(lab) % 20)],
-                       linewidths=0.7)
+            # tab20's saturated colours first, so that neighbouring ids (femur 1, tibia 2) differ at a glance
+            c = (2 * (int(lab) - 1)) % 20 + ((int(lab) - 1) // 10) % 2
+            ax.contour((labels[:, :, k] == lab).T.astype(float), levels=[0.5], colors=[cmap(c)], linewidths=0.7)
         ax.set_title(f"slice {k}", fontsize=7)
         ax.axis("off")
     for ax in axes[len(ks):]:

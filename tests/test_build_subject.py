@@ -199,3 +199,22 @@ def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
     kept = neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES)
     for i in foot:
         assert Rotation.from_matrix(kept[i][:3, :3].T @ flexed[i][:3, :3]).magnitude() < np.radians(0.01)
+
+
+def test_seeds_file_settings(tmp_path):
+    from bonecap.build_mri import load_seeds
+    from bonecap.errors import InputError
+
+    f = tmp_path / "seeds.yaml"
+    f.write_text("margin_mm: 4\noptions: {femur_r: {marrow_over_muscle: 2.0}}\nrules: {patella_r: cortical}\n"
+                 "seeds: {femur_r: [[0, 0, 0], [0, 0, -400]], patella_r: [10, -40, -380]}\n")
+    seeds, settings = load_seeds(f, with_settings=True)
+    assert settings == {"margin_mm": 4.0, "options": {"femur_r": {"marrow_over_muscle": 2.0}},
+                        "rules": {"patella_r": "cortical"}}
+    assert set(seeds) == {"femur_r", "patella_r"}
+    for bad, msg in (("margin_mm: -1\n", "margin_mm"), ("options: {tibia_r: {a: 1}}\n", "tibia_r"),
+                     ("rules: {patella_r: watershed}\n", "rules")):
+        f.write_text(bad + "seeds: {femur_r: [[0, 0, 0], [0, 0, -400]], patella_r: [10, -40, -380]}\n")
+        with pytest.raises(InputError, match=msg):
+            load_seeds(f, with_settings=True)
+

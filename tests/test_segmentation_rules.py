@@ -117,3 +117,91 @@ def test_joint_space_is_the_valley_not_the_minimum():
     profile = np.array([300, 320, 500, 900, 1400, 1500, 700, 1300, 1200, 800, 500, 450])
     assert _joint_space(profile) == 6
     assert _joint_space(np.array([900, 700, 500, 400, 300])) == 4
+
+
+def test_muscle_level_where_bone_fills_the_view():
+    # a limb's cross-section: muscle is the mode, and stays so
+    rng = np.random.default_rng(0)
+    limb = np.r_[rng.normal(1000, 40, 6000), rng.normal(3000, 60, 1500), rng.normal(5000, 80, 2000)]
+    img = limb.reshape(1, -1)
+    assert abs(cortical.muscle_level(img, np.ones_like(img, bool)) - 1000) < 60
+    # a sagittal knee: the condyles' marrow is the most common tissue, muscle the darker class's mode
+    knee = np.r_[rng.normal(1000, 40, 2500), rng.normal(3000, 60, 6000), rng.normal(5000, 80, 1500)]
+    img = knee.reshape(1, -1)
+    plain_mode = cortical._mode(knee, *np.percentile(knee, [1, 99]), 64)
+    assert abs(plain_mode - 3000) < 100                  # what the plain mode would have said
+    assert abs(cortical.muscle_level(img, np.ones_like(img, bool)) - 1000) < 60
+
+
+def _marrow_and_fat(bridge_px: int):
+    """A body disc whose skin band holds fat; a marrow disc joined to the fat by a bridge."""
+    yy, xx = np.mgrid[:120, :120]
+    body = (yy - 60) ** 2 + (xx - 60) ** 2 < 58 ** 2
+    inner = (yy - 60) ** 2 + (xx - 60) ** 2 < 54 ** 2
+    fat = body & ~((yy - 60) ** 2 + (xx - 60) ** 2 < 48 ** 2)
+    marrow = (yy - 60) ** 2 + (xx - 60) ** 2 < 15 ** 2
+    bridge = (np.abs(yy - 60) <= bridge_px // 2) & (xx > 60) & body
+    return body, inner, fat | marrow | bridge, marrow
+
+
+def test_detach_from_skin_cuts_marrow_loose_from_fat_through_a_gap():
+    body, inner, cand, marrow = _marrow_and_fat(bridge_px=1)
+    lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm=1.0, neck_mm=1.5)
+    got = lab == lab[60, 60]
+    assert lab[60, 60] > 0 and not (got & ~inner).any()          # the marrow, away from the skin
+    dice = 2 * (got & marrow).sum() / (got.sum() + marrow.sum())
+    assert dice > 0.97
+    # a wide connection is no gap in a cortex: the region reaches the skin and is dropped whole
+    body, inner, cand, marrow = _marrow_and_fat(bridge_px=12)
+    lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm=1.0, neck_mm=1.5)
+    assert lab[60, 60] == 0 or (lab == lab[60, 60]).sum() > 3 * marrow.sum()
+    # nothing at the skin: returned as labelled
+    lab, n = cortical.detach_from_skin(marrow, body, inner, pixel_mm=1.0)
+    assert n == 1 and (lab > 0).sum() == marrow.sum()
+
+
+def test_two_long_bones_in_one_region_are_split_and_a_density_seed_leaves_it():
+    from bonecap.segmentation.bones import _cortical_slice, _split_shared_regions
+
+    yy, xx = np.mgrid[:160, :120].astype(float)
+    a = (yy - 45) ** 2 + (xx - 60) ** 2 < 25 ** 2            # a condyle
+    b = (yy - 108) ** 2 + (xx - 60) ** 2 < 25 ** 2           # a plateau, touching it through a neck
+    neck = (np.abs(xx - 60) <= 2) & (yy > 60) & (yy < 90)
+    lab, n = _split_shared_regions((a | b | neck).astype(np.int32), 1,
+                                   {"femur_r": np.array([[45.0, 60.0]]), "tibia_r": np.array([[108.0, 60.0]])})
+    assert n == 2 and lab[45, 60] != lab[108, 60]
+    assert (lab[a] == lab[45, 60]).all() and (lab[b] == lab[108, 60]).all()
+    # _cortical_slice: femur seed inside the one marrow region, a patella seed 8 px off it and nothing
+    # else within reach: the femur keeps its marrow (the patella's row may not push it onto nothing)
+    rng = np.random.default_rng(1)
+    img = np.full(yy.shape, 1000.0) + rng.normal(0, 10, yy.shape)
+    r = np.hypot(yy - 60, xx - 60)
+    img[r < 22] = 3000.0
+    img[(r >= 22) & (r < 25)] = 100.0                        # the cortex
+    body = np.ones(img.shape, bool)
+    body[:2] = body[-2:] = False
+    body[:, :2] = body[:, -2:] = False
+    from scipy import ndimage
+
+    inner = ndimage.binary_erosion(body, iterations=3)
+    opts = {"femur_r": {"search_radius_mm": 30.0}, "patella_r": {"max_distance_mm": 25.0}}
+    out = _cortical_slice(img, img, body, inner, 1.0, {"femur_r": np.array([[60.0, 60.0]])},
+                          {"femur_r": np.array([False])}, opts, {"patella_r": np.array([[60.0, 90.0]])})
+    truth = r < 25
+    dice = 2 * (out["femur_r"] & truth).sum() / (out["femur_r"].sum() + truth.sum())
+    assert dice > 0.9
+
+
+def test_slice_seeds_point_on_a_slice_crosses_it():
+    from bonecap.segmentation.bones import slice_seeds
+
+    aff = np.diag([1.0, 1.0, 4.0, 1.0])
+    v = Volume(np.zeros((10, 10, 24), np.float32), aff)
+    # the polyline ends on slice 19 up to a rounding of the world coordinates (0.1 mm in a YAML file)
+    line = np.array([[5.0, 5.0, 40.0], [5.0, 5.0, 19 * 4.0 - 0.04]])
+    crossing = slice_seeds(v, line, 0.0)
+    assert len(crossing[19]) == 1 and len(crossing[10]) == 1 and len(crossing[20]) == 0
+    # a vertex on slice 12 (both segments find it, a hair apart): one seed there, not two
+    line = np.array([[5.0, 5.0, 40.0], [6.0, 5.0, 12 * 4.0 + 0.03], [8.0, 5.0, 80.0]])
+    crossing = slice_seeds(v, line, 0.0)
+    assert len(crossing[12]) == 1 and np.allclose(crossing[12][0], [6.0, 5.0], atol=0.01)

@@ -99,12 +99,15 @@ def slice_seeds(volume: Volume, polyline_lps, margin_mm: float = 20.0) -> list[n
     ijk = volume.world_to_index(pts)
     K = volume.shape[2]
     dz = float(volume.spacing[2])
+    tol = 0.1 / dz
     ks = np.arange(K, dtype=float)
     out: list[list[np.ndarray]] = [[] for _ in range(K)]
     # crossings of each segment (vectorised over slices)
     for a, b in zip(ijk[:-1], ijk[1:]):
         lo, hi = min(a[2], b[2]), max(a[2], b[2])
-        sel = ks[(ks >= lo) & (ks <= hi)]
+        # a point placed on a slice (by eye, on the slice shown; its world coordinates written to
+        # 0.1 mm) maps to k +- rounding: it is on that slice
+        sel = ks[(ks >= lo - tol) & (ks <= hi + tol)]
         if sel.size == 0:
             continue
         if hi - lo < 1e-9:           # segment lying in a slice: its midpoint
@@ -127,8 +130,14 @@ def slice_seeds(volume: Volume, polyline_lps, margin_mm: float = 20.0) -> list[n
     result = []
     for lst in out:
         arr = np.array(lst, float).reshape(-1, 2)
-        # duplicates (a crossing exactly at a vertex is found by both segments)
-        result.append(np.unique(np.round(arr, 6), axis=0) if len(arr) > 1 else arr)
+        # duplicates: a crossing at a vertex is found by both segments, a hair apart (the tolerance)
+        if len(arr) > 1:
+            keep = [0]
+            for q in range(1, len(arr)):
+                if np.min(np.linalg.norm(arr[keep] - arr[q], axis=1)) > 0.5:
+                    keep.append(q)
+            arr = arr[keep]
+        result.append(arr)
     return result
 
 
@@ -172,13 +181,15 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
     out = {name: np.zeros(img.shape, bool) for name in bones}
     if not np.isfinite(m_slice) or m_slice <= 0:
         return out
-    o0 = next(iter(opts.values()))
-    lab, n = ndimage.label(body & (med > o0.get("marrow_over_muscle", 1.2) * m_slice), structure=np.ones((3, 3), bool))
+    o0 = opts[next(iter(bones))]          # the slice's candidates follow its (first) long bone's options
+    # fat reaches the skin and is dropped; marrow joined to it through a gap in the cortex is cut loose
+    cand = body & (med > o0.get("marrow_over_muscle", 1.2) * m_slice)
+    lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
     if n == 0:
         return out
+    lab, n = _split_shared_regions(lab, n, {b: p[~extension[b]] for b, p in bones.items()})
     bad = np.zeros(n + 1, bool)
     bad[0] = True
-    bad[np.unique(lab[body & ~inner])] = True           # fat reaching the skin
     bad |= np.bincount(lab.ravel(), minlength=n + 1) * pixel_mm ** 2 < o0.get("min_marrow_mm2", 6.0)
     ids = np.flatnonzero(~bad)
     if ids.size == 0:
@@ -193,12 +204,21 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
             c = np.where(d <= radius, d + (radius if ext else 0.0), np.inf)
             rows.append(name)
             cost.append(c)
+    # a region holding a long bone's own seed (its polyline crosses this slice inside it) is that
+    # bone's: a density-rule seed nearby may not take it (the assignment would push the long bone onto
+    # a far region to make room -- seen on a sagittal knee, the patella's seed taking the femur's condyle)
+    held = np.zeros(ids.size, bool)
+    for name, pts in bones.items():
+        for p in np.asarray(pts)[~extension[name]]:
+            i, j = int(round(p[0])), int(round(p[1]))
+            if 0 <= i < lab.shape[0] and 0 <= j < lab.shape[1]:
+                held |= ids == lab[i, j]
     for name, pts in (others or {}).items():
         radius = opts[name]["max_distance_mm"] / pixel_mm
         for p in pts:
             d = np.sqrt(ndimage.minimum((ii - p[0]) ** 2 + (jj - p[1]) ** 2, ll, ids))
             rows.append(None)
-            cost.append(np.where(d <= radius, d + 0.5 * radius, np.inf))
+            cost.append(np.where((d <= radius) & ~held, d + 0.5 * radius, np.inf))
     cost = np.array(cost)
     finite = np.isfinite(cost)
     if not finite.any():
@@ -219,6 +239,38 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
         out[name] |= cortical.cortical_contour(img, marrow, pixel_mm, m, body_mask=body,
                                                **{k: v for k, v in opts[name].items() if k in _CONTOUR_KEYS})
     return out
+
+
+def _split_shared_regions(lab: np.ndarray, n: int, seeds: Mapping[str, np.ndarray]) -> tuple[np.ndarray, int]:
+    """Split a marrow region that holds the seeds of two or more long bones between them.
+
+    Where two bones' marrow touch through a thin or partial-volumed cortex (a
+    condyle on its plateau in a sagittal slice, radius and ulna at the distal
+    radio-ulnar joint) the candidates are one region and the assignment could
+    give it to one bone only. Such a region is cut along its neck: a
+    watershed of its distance map from each bone's seed(s).
+    """
+    from skimage.segmentation import watershed
+
+    inside: dict[int, list[tuple[str, np.ndarray]]] = {}
+    for name, pts in seeds.items():
+        for p in np.asarray(pts, float).reshape(-1, 2):
+            i, j = int(round(p[0])), int(round(p[1]))
+            if 0 <= i < lab.shape[0] and 0 <= j < lab.shape[1] and lab[i, j] > 0:
+                inside.setdefault(int(lab[i, j]), []).append((name, np.array([i, j])))
+    for region, hits in inside.items():
+        names = sorted({h[0] for h in hits})
+        if len(names) < 2:
+            continue
+        mask = lab == region
+        markers = np.zeros(lab.shape, np.int32)
+        for name, (i, j) in hits:
+            markers[i, j] = names.index(name) + 1
+        parts = watershed(-ndimage.distance_transform_edt(mask), markers, mask=mask)
+        for q in range(2, len(names) + 1):
+            n += 1
+            lab[parts == q] = n
+    return lab, n
 
 
 _MARROW_KEYS = {"marrow_over_muscle", "min_marrow_mm2"}

@@ -26,6 +26,7 @@ Public API
 ----------
 - :func:`muscle_level` ``(image, mask, nbins=64) -> float``,
   :func:`local_muscle_level` ``(image, seed_ij, pixel_mm, body_mask=None, radius_mm=65.0) -> float``
+- :func:`detach_from_skin` ``(candidates, body, inner, pixel_mm, neck_mm=1.5) -> (labels, n)``
 - :func:`find_marrow` ``(image, seed_ij, pixel_mm, body_mask=None, search_radius_mm=25.0, ...) -> ndarray[bool]``
 - :func:`cortical_contour` ``(image, marrow, pixel_mm, muscle, ...) -> ndarray[bool]``
 - :func:`cortical_edge_slice` ``(image, seed_ij, pixel_mm, body_mask=None, search_radius_mm=25.0, ...) -> ndarray[bool]``
@@ -45,7 +46,7 @@ from skimage.draw import polygon2mask
 from bonecap.segmentation.density import fill_holes
 from bonecap.segmentation._checks import check_image, check_mask, check_seed
 
-__all__ = ["muscle_level", "local_muscle_level", "find_marrow", "cortical_contour", "cortical_edge_slice"]
+__all__ = ["muscle_level", "local_muscle_level", "detach_from_skin", "find_marrow", "cortical_contour", "cortical_edge_slice"]
 
 _EIGHT = np.ones((3, 3), bool)
 
@@ -68,6 +69,14 @@ def muscle_level(image: np.ndarray, mask: np.ndarray, nbins: int = 64) -> float:
     The median would be pulled towards fat and marrow where they are
     abundant; the mode is not.
 
+    Where bone fills most of the region (a sagittal or coronal slice through
+    a knee or an elbow, where the condyles are the largest tissue) the mode
+    is the marrow's. So the mode must lie in the darker of the two classes
+    Otsu's threshold splits the region into (muscle below, fat and marrow
+    above); when it does not, the mode of the darker class is taken. In a
+    limb's cross-section the mode is muscle and lies below the threshold:
+    nothing changes there.
+
     Parameters
     ----------
     image : ndarray (I, J)
@@ -88,6 +97,18 @@ def muscle_level(image: np.ndarray, mask: np.ndarray, nbins: int = 64) -> float:
     lo, hi = np.percentile(v, [1, 99])
     if hi <= lo:
         return float(lo)
+    mode = _mode(v, lo, hi, nbins)
+    if v.size >= 64:
+        from skimage.filters import threshold_otsu
+
+        split = float(threshold_otsu(v[(v >= lo) & (v <= hi)]))
+        if mode > split and (v < split).sum() >= 32:
+            # the bright class (marrow, fat) is the most common tissue here: muscle is the darker class's mode
+            mode = _mode(v[v < split], lo, split, max(8, int(nbins * (split - lo) / (hi - lo))))
+    return mode
+
+
+def _mode(v: np.ndarray, lo: float, hi: float, nbins: int) -> float:
     h, edges = np.histogram(v, bins=int(nbins), range=(lo, hi))
     h = ndimage.gaussian_filter1d(h.astype(float), 1.5, mode="constant")
     b = int(np.argmax(h))
@@ -129,6 +150,73 @@ def _interior(body: np.ndarray, pixel_mm: float, skin_band_mm: float) -> np.ndar
     if w < 1:
         return body
     return ndimage.binary_erosion(body, _EIGHT, iterations=w, border_value=1)
+
+
+def detach_from_skin(candidates: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float,
+                     neck_mm: float = 1.5) -> tuple[np.ndarray, int]:
+    """Bright regions of a slice, with marrow cut loose from the fat it touches through the cortex.
+
+    Marrow is told from fat by the skin test (fat reaches the skin band, marrow
+    is enclosed by its cortex), but where the cortex is thinner than the slice
+    thickness -- a condyle cut obliquely, a sagittal slice through the knee --
+    partial volume leaves gaps in it and one bright region runs from the
+    marrow through the gap into the fat and out to the skin. Such regions are
+    eroded by ``neck_mm`` (a gap narrower than twice that closes), the eroded
+    parts farther than ``neck_mm`` from the skin band are kept and grown back
+    by ``neck_mm`` inside the region (each its own label); the parts at the
+    skin are fat and dropped. Regions that do not touch the skin band are
+    returned as they are.
+
+    Parameters
+    ----------
+    candidates : ndarray of bool (I, J)
+        The bright pixels (marrow and fat candidates) inside the body.
+    body, inner : ndarray of bool (I, J)
+        The body and its interior (the body without its skin band).
+    pixel_mm : float
+    neck_mm : float
+        Half the widest gap that is cut.
+
+    Returns
+    -------
+    labels : ndarray of int (I, J)
+        Candidate regions, 0 background; regions touching the skin band are gone
+        or replaced by their detached parts.
+    n : int
+        Number of labels.
+    """
+    from skimage.morphology import disk
+    from skimage.segmentation import expand_labels
+
+    candidates = np.asarray(candidates, bool)
+    band = np.asarray(body, bool) & ~np.asarray(inner, bool)
+    lab, n = ndimage.label(candidates, structure=_EIGHT)
+    if n == 0:
+        return lab, 0
+    touching = np.zeros(n + 1, bool)
+    touching[np.unique(lab[band & candidates])] = True
+    touching[0] = False
+    if not touching.any():
+        return lab, n
+    at_skin = touching[lab]
+    r = max(1, int(round(neck_mm / pixel_mm)))
+    fp = disk(r)
+    core = ndimage.binary_erosion(at_skin, fp)
+    clab, cn = ndimage.label(core, structure=_EIGHT)
+    near = ndimage.binary_dilation(band, fp)
+    drop = np.zeros(cn + 1, bool)
+    drop[np.unique(clab[near & core])] = True
+    drop[0] = True
+    clab[drop[clab]] = 0
+    grown = expand_labels(clab, r) * at_skin
+    out = np.where(at_skin, 0, lab)
+    keep = np.unique(grown[grown > 0])
+    out[grown > 0] = n + np.searchsorted(keep, grown[grown > 0]) + 1
+    # compact ids
+    ids = np.unique(out[out > 0])
+    remap = np.zeros(out.max() + 1, int)
+    remap[ids] = np.arange(1, ids.size + 1)
+    return remap[out], int(ids.size)
 
 
 def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarray | None = None,
@@ -210,13 +298,15 @@ def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarr
         return out
     # Candidates over the whole body, so that fat reaching into the skin band is one region with it.
     cand = b & (img > marrow_over_muscle * m)
-    lab, n = ndimage.label(cand, structure=_EIGHT)
+    if body_mask is not None:
+        # fat reaching the skin is dropped, marrow joined to it through a gap in the cortex cut loose
+        lab, n = detach_from_skin(cand, b, inner, pixel_mm)
+    else:
+        lab, n = ndimage.label(cand, structure=_EIGHT)
     if n == 0:
         return out
     bad = np.zeros(n + 1, bool)
     bad[0] = True
-    if body_mask is not None:
-        bad[np.unique(lab[b & ~inner])] = True
     area = np.bincount(lab.ravel(), minlength=n + 1) * pixel_mm ** 2
     bad |= area < min_marrow_mm2
     if excl is not None:
