@@ -36,7 +36,7 @@ from bonecap.errors import DataError, InputError
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
 
-__all__ = ["MODEL_TO_LPS", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
+__all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
            "SEGMENTED_BONES"]
 
 #: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
@@ -767,6 +767,8 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
             capsule_names = match_capsules(centres, placed, max_distance_mm=25.0)
         report["capsules_found"] = int(len(centres))
         report["capsules_matched"] = sorted(capsule_names)
+        if capsule_names and subject.skin is not None:
+            capsule_names = capsules_to_markers(capsule_names, subject.skin)
     for n in names:
         m = mset.markers[n]
         p = capsule_names.get(n, placed[n])
@@ -790,6 +792,48 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
                                           if np.isfinite(poses[i]).all()}}
     report["markers_bound"] = len(subject.markers)
     return report
+
+
+def capsules_to_markers(capsules: dict[str, np.ndarray], skin: Mesh, *, capsule_radius_mm: float = 4.0,
+                        marker_radius_mm: float = 7.0, normal_radius_mm: float = 20.0) -> dict[str, np.ndarray]:
+    """Marker centres from the MRI capsules that marked their spots (Kojima et al.'s protocol).
+
+    A capsule and the motion-capture marker that replaces it rest on the
+    same spot of skin, each with its centre one own radius out along the skin
+    normal: the marker is ``marker_radius_mm - capsule_radius_mm`` farther out
+    (3 mm for 8 mm capsules and 14 mm markers). The normal is the mean of the
+    skin's vertex normals within ``normal_radius_mm`` of the capsule, so the
+    bump the capsule itself may leave on the skin mask does not tilt it.
+
+    Parameters
+    ----------
+    capsules : dict name -> (3,)
+        Capsule centres (LPS mm), named by :func:`~bonecap.segmentation.capsules.match_capsules`.
+    skin : Mesh
+        The personal skin, same frame, outward normals.
+
+    Returns
+    -------
+    dict name -> ndarray (3,)
+        Marker centres.
+    """
+    from scipy.spatial import cKDTree
+
+    import trimesh
+
+    tm = trimesh.Trimesh(skin.vertices, skin.faces, process=False)
+    vn = tm.vertex_normals
+    tree = cKDTree(tm.vertices)
+    out = {}
+    for name, c in capsules.items():
+        c = np.asarray(c, float)
+        idx = tree.query_ball_point(c, normal_radius_mm)
+        if not idx:
+            idx = [int(tree.query(c)[1])]
+        n = vn[idx].mean(axis=0)
+        norm = np.linalg.norm(n)
+        out[name] = c + (marker_radius_mm - capsule_radius_mm) * n / norm if norm > 1e-6 else c
+    return out
 
 
 def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, mset, marker_radius_mm: float = 7.0
@@ -907,6 +951,17 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
         Ts = {}
         for n, bone in ((ulna_n, U), (radius_n, Rb)):
+            if n == radius_n:
+                # The radius's seeds were its line at the MRI pose; pronated by up to half a turn, its distal
+                # end lies on the other side of the ulna. Its line is turned about the registered ulna's
+                # radio-ulnar axis to where the image is brightest along it (marrow) and the stack is
+                # segmented again from there.
+                turn = _radius_turn(v, seeds[radius_n], Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U)
+                if turn is not None:
+                    seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
+                    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+                    report["stacks"].setdefault(str(d), {})["radius_seed_turn_deg"] = float(
+                        np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
             if n not in ids or not (lab == ids[n]).any():
                 raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
             target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
@@ -914,7 +969,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
             if n == ulna_n:
                 T, res = rigid_icp(pts, target)
             else:
-                T, res = _radius_icp(pts, target, Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U)
+                ulna_move = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
+                T, res = _radius_icp(pts, target, ulna_move, U,
+                                     extra_starts=[turn @ ulna_move] if turn is not None else ())
             Ts[n] = T @ bone.bone_to_world
             report["stacks"].setdefault(str(d), {})[f"{n}_icp_mm"] = float(np.mean(res))
             if np.mean(res) > max_icp_mm:
@@ -940,8 +997,63 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     return out, report
 
 
+def _radioulnar_axis(ulna: Bone, ulna_move: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The registered ulna's radio-ulnar axis: a point on it and its unit direction (LPS), or None."""
+    ends = [ulna.landmark_in_world(j) for j in ("proximal_radioulnar", "distal_radioulnar")
+            if j in ulna.joint_centres]
+    if len(ends) != 2:
+        return None
+    a = ulna_move[:3, :3] @ ends[0] + ulna_move[:3, 3]
+    b = ulna_move[:3, :3] @ ends[1] + ulna_move[:3, 3]
+    return a, (b - a) / np.linalg.norm(b - a)
+
+
+def _turn_about(point: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    R = np.eye(4)
+    R[:3, :3] = Rotation.from_rotvec(np.radians(deg) * axis).as_matrix()
+    R[:3, 3] = point - R[:3, :3] @ point
+    return R
+
+
+def _radius_turn(volume: Volume, radius_line: np.ndarray, ulna_move: np.ndarray, ulna: Bone,
+                 step_deg: float = 5.0) -> np.ndarray | None:
+    """The turn about the registered ulna's radio-ulnar axis that puts the radius's line in its marrow.
+
+    The radius line (radial head -> wrist, at the MRI pose) is carried with the
+    ulna's registration, then turned about the radio-ulnar axis in ``step_deg``
+    steps; at each turn the image is sampled along the line's distal two
+    thirds (the radial head stays on the axis whatever the twist) and the turn
+    with the highest median -- the line inside bright marrow, not in muscle --
+    wins. Returns the 4x4 turn (LPS, applied after ``ulna_move``), or None
+    without the ulna's radio-ulnar joints.
+    """
+    from scipy.ndimage import map_coordinates
+
+    ax = _radioulnar_axis(ulna, ulna_move)
+    if ax is None or len(radius_line) < 2:
+        return None
+    line = np.asarray(radius_line, float) @ ulna_move[:3, :3].T + ulna_move[:3, 3]
+    t = np.linspace(1 / 3, 1.0, 40)[:, None]
+    pts = line[0] + t * (line[-1] - line[0])
+    data = np.asarray(volume.data, np.float32)
+    best, best_score = None, -np.inf
+    for ang in np.arange(0.0, 360.0, step_deg):
+        R = _turn_about(ax[0], ax[1], ang)
+        ijk = volume.world_to_index(pts @ R[:3, :3].T + R[:3, 3])
+        inside = ((ijk >= -0.5) & (ijk <= np.array(data.shape) - 0.5)).all(axis=1)
+        if inside.sum() < len(pts) // 2:
+            continue
+        vals = map_coordinates(data, ijk[inside].T, order=1, mode="nearest")
+        score = float(np.median(vals))
+        if score > best_score:
+            best, best_score = R @ ulna_move, score
+    return None if best is None else best @ np.linalg.inv(ulna_move)
+
+
 def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone,
-                step_deg: float = 45.0) -> tuple[np.ndarray, np.ndarray]:
+                step_deg: float = 45.0, extra_starts=()) -> tuple[np.ndarray, np.ndarray]:
     """Rigid ICP of the radius into a forearm stack, started around the registered ulna.
 
     ICP is local (~20 degrees), and a stack at 172 degrees of pronation holds the
@@ -951,22 +1063,14 @@ def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone
     registration followed by turns about that axis every ``step_deg``; the
     lowest mean residual wins.
     """
-    from scipy.spatial.transform import Rotation
 
     from bonecap.skeleton.warp import rigid_icp
 
-    ends = [ulna.landmark_in_world(j) for j in ("proximal_radioulnar", "distal_radioulnar")
-            if j in ulna.joint_centres]
-    starts = [ulna_move]
-    if len(ends) == 2:
-        a = ulna_move[:3, :3] @ ends[0] + ulna_move[:3, 3]
-        b = ulna_move[:3, :3] @ ends[1] + ulna_move[:3, 3]
-        axis = (b - a) / np.linalg.norm(b - a)
+    starts = [ulna_move, *extra_starts]
+    ax = _radioulnar_axis(ulna, ulna_move)
+    if ax is not None:
         for ang in np.arange(step_deg, 360.0, step_deg):
-            R = np.eye(4)
-            R[:3, :3] = Rotation.from_rotvec(np.radians(ang) * axis).as_matrix()
-            R[:3, 3] = a - R[:3, :3] @ a
-            starts.append(R @ ulna_move)
+            starts.append(_turn_about(ax[0], ax[1], ang) @ ulna_move)
     best = None
     for C in starts:
         T, res = rigid_icp(pts, target, init=C)

@@ -53,7 +53,7 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
     from bonecap.phantom import make_phantom
 
     summary = make_phantom(args.out_dir, seed=args.seed, stature_mm=args.stature * 1000.0 if args.stature else None,
-                           generic=args.generic, preset=args.preset)
+                           generic=args.generic, preset=args.preset, marker_capsules=args.marker_capsules)
     print(f"phantom seed {summary['seed']} ({summary['preset']}): {summary['bones']} bones, "
           f"stature {summary['stature_mm']:.0f} mm")
     print(f"  MRI: {len(summary['stations'])} stations and forearm stacks "
@@ -156,6 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_generic(p)
     p.add_argument("--preset", choices=["tiny", "default"], default="default",
                    help="tiny: a few coarse stations and short trials (for tests); default: the full subject")
+    p.add_argument("--marker-capsules", action="store_true",
+                   help="image an 8 mm oil capsule under every trial marker in the stations (the paper's protocol)")
     p.set_defaults(handler=_cmd_phantom)
 
     p = sub.add_parser(

@@ -214,3 +214,19 @@ def test_body_mask_that_includes_the_capsules():
     found, _ = find_capsules(vol, body_mask=skin)
     dz, dxy = _errors(found, truth)
     assert len(found) == 4 and dz.max() <= 1.0 and dxy.max() <= 1.0
+
+
+def test_capsules_to_markers_moves_out_along_the_skin_normal():
+    import trimesh
+
+    from bonecap.build_mri import capsules_to_markers
+    from bonecap.model import Mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=100.0)
+    skin = Mesh(ball.vertices, ball.faces, "lps")
+    d = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    out = capsules_to_markers({"M": 104.0 * d}, skin, capsule_radius_mm=4.0, marker_radius_mm=7.0)
+    assert np.allclose(out["M"], 107.0 * d, atol=0.1)
+    # a 9 mm marker over a 4 mm capsule: 5 mm out
+    out = capsules_to_markers({"M": 104.0 * d}, skin, capsule_radius_mm=4.0, marker_radius_mm=9.0)
+    assert np.allclose(out["M"], 109.0 * d, atol=0.1)

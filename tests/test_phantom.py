@@ -18,8 +18,27 @@ def phantom(tmp_path_factory):
     from bonecap.cli import main
 
     out = tmp_path_factory.mktemp("phantom")
-    assert main(["phantom", "-o", str(out), "--preset", "tiny", "--seed", "3"]) == 0
+    assert main(["phantom", "-o", str(out), "--preset", "tiny", "--seed", "3", "--marker-capsules"]) == 0
     return out
+
+
+def test_marker_capsules_touch_the_skin_under_the_markers(phantom):
+    import trimesh
+
+    summary = json.loads((phantom / "phantom.json").read_text())
+    caps = json.loads((phantom / "truth" / "marker_capsules.json").read_text())
+    import yaml
+
+    markers = yaml.safe_load((phantom / "truth" / "marker_binding.yaml").read_text())["markers"]
+    assert set(caps["centres_lps"]) == set(markers) and summary["marker_capsules"] == len(markers)
+    skin = read_mesh(phantom / "truth" / "meshes" / "skin.ply")
+    tm = trimesh.Trimesh(skin.vertices, skin.faces, process=False)
+    c = np.array(list(caps["centres_lps"].values()))
+    _, dist, _ = trimesh.proximity.closest_point(tm, c)
+    # one capsule radius off the skin (a few sit in a crease, nearer to another patch of skin)
+    assert np.median(np.abs(dist - caps["capsule_radius_mm"])) < 0.3
+    assert (np.abs(dist - caps["capsule_radius_mm"]) < 1.0).mean() > 0.9
+    assert not tm.contains(c).any()                     # outside the body
 
 
 def test_summary_and_layout(phantom):

@@ -70,8 +70,33 @@ def _write_json(path: Path, obj: Any) -> None:
         tmp.write_text(json.dumps(obj, indent=2))
 
 
+def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float = 4.0,
+                     marker_radius_mm: float = 7.0) -> dict[str, Any]:
+    """Oil capsules under the trial markers at the MRI (reference) pose, LPS.
+
+    The markers are placed as the trials place them
+    (:func:`~bonecap.phantom.trials.place_phantom_markers`: centre one marker
+    radius out along the skin normal); each capsule touches the skin at the
+    same contact point, so its centre is ``marker_radius - capsule_radius``
+    closer to the skin along that normal.
+    """
+    from bonecap.phantom.trials import place_phantom_markers
+
+    binding = place_phantom_markers(marker_set, skeleton, skin, marker_radius_mm=marker_radius_mm)
+    tm = skin.to_trimesh()
+    contact, _, _ = tm.nearest.on_surface(binding.world)
+    normal = binding.world - contact
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+    centres = contact + capsule_radius_mm * normal
+    lps = centres @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3]
+    return {"frame": "LPS, MRI pose (the stations' true world)", "capsule_radius_mm": capsule_radius_mm,
+            "marker_radius_mm": marker_radius_mm,
+            "centres_lps": {n: c.tolist() for n, c in zip(binding.names, lps)}}
+
+
 def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float | None = None,
-                 generic: str | os.PathLike = "default", preset: str = "default") -> dict[str, Any]:
+                 generic: str | os.PathLike = "default", preset: str = "default",
+                 marker_capsules: bool = False) -> dict[str, Any]:
     """Make a synthetic subject: MRI stations, forearm stacks, trials and the truth.
 
     The trials are made in a forked child process while this one renders the
@@ -93,6 +118,13 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         markers are its MarkerSet without its virtual markers.
     preset : {"default", "tiny"}
         ``tiny``: a few coarse stations and short trials, for the tests.
+    marker_capsules : bool
+        Image an oil capsule (8 mm) on the skin under every trial marker in
+        the whole-body stations, as the paper's protocol did (the capsules
+        mark the spots the motion-capture markers are later stuck on). Each
+        capsule touches the skin at the marker's contact point, its centre one
+        capsule radius out along the skin normal (the marker's is one marker
+        radius out); the centres go to ``truth/marker_capsules.json``.
 
     Returns
     -------
@@ -100,8 +132,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         The summary also written to ``phantom.json``.
     """
     from bonecap.markers import load_marker_set
-    from bonecap.phantom.mri import (ForearmPose, plan_stations, render_forearm_stacks, render_stations,
-                                     write_merged_labels)
+    from bonecap.phantom.mri import (ForearmPose, capsule_meshes, plan_stations, render_forearm_stacks,
+                                     render_stations, write_merged_labels)
     from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
@@ -140,6 +172,12 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         return res, time.perf_counter() - t
 
     trials_job = run_beside(trials_stage)
+
+    capsule_truth = None
+    if marker_capsules:
+        capsule_truth = _marker_capsules(marker_set, skeleton, subject.skin)
+        layers.extend((m, "oil") for m in capsule_meshes(np.array(list(capsule_truth["centres_lps"].values())),
+                                                         capsule_truth["capsule_radius_mm"]))
 
     # 2. Whole-body stations.
     release_memory()
@@ -234,6 +272,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     _write_json(truth / "forearm.json", {"side": "r", "poses": forearm_truth,
                                          "capsule_radius_mm": placement.radius_mm})
     _write_json(truth / "skeleton.json", _skeleton_truth(skeleton))
+    if capsule_truth is not None:
+        _write_json(truth / "marker_capsules.json", capsule_truth)
     _write_json(truth / "subject.json", _jsonable({"seed": seed, "generic": str(generic), "preset": preset,
                                                    "params": subject.params}))
     write_truth_readme(truth / "README.md")
@@ -249,6 +289,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
                       "shift_mm": round(st.plan.shift_mm, 3), "rotation_deg": round(st.plan.rotation_deg, 4)}
                      for st in stations.stations],
         "forearm_stacks": sorted(stacks),
+        "marker_capsules": len(capsule_truth["centres_lps"]) if capsule_truth else 0,
         "trials": sorted(trials.get("trials", {})) if isinstance(trials.get("trials"), dict) else trials.get(
             "trials"),
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
@@ -360,6 +401,7 @@ the C3D trials for the motion truth.
 | `skeleton.json` | the true skeleton at the MRI pose: per bone `parent`, `bone_to_lps`, `joint_centres_lps`, `landmarks_lps` |
 | `subject.json` | seed, template, preset and every drawn parameter (stature, segment scales, femoral anteversion and neck angle, bowing, pelvis width, body shape) |
 | `marker_binding.yaml` | the true marker -> bone binding: bone, position in the bone frame (mm), placement, soft-tissue-artefact class |
+| `marker_capsules.json` | only with `--marker-capsules`: per trial marker the centre (LPS mm, MRI pose) of the oil capsule imaged under it in the stations, `capsule_radius_mm`, `marker_radius_mm` (the marker's centre is `marker_radius - capsule_radius` farther out along the skin normal) |
 | `<trial>_poses.npz` | per trial, with the keys `bonecap animate` writes: `bones` (names), `times` (s from 0), `first_frame`, `transforms` (frames x bones x 4 x 4, bone frame -> lab, mm), `valid` (frames x bones); plus `markers`, `marker_truth` (markers without artefact or noise, lab mm), `sta` (the artefact added), `noise`, `gaps`, `joint_names`, `joint_centres` (frames x joints x 3, lab mm), joint angles, and for the pronation trial `forearm_twist_deg` |
 
 Bone frames follow the template's (ISB for the embedded skeleton; the OpenSim
