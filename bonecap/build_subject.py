@@ -213,7 +213,7 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     through the shared joint centre (:func:`bonecap.skeleton.kinematics.pose_skeleton`).
     Unsolved bones keep their reference orientation relative to the parent.
     """
-    from bonecap.skeleton.kinematics import pose_skeleton, proximal_joint
+    from bonecap.skeleton.kinematics import PIVOT_JOINTS, pose_skeleton, proximal_joint
 
     idx = {n: i for i, n in enumerate(skeleton.names)}
     rots = {}
@@ -228,7 +228,9 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
         P = new_R[b.parent]
         C = poses[idx[n]][:3, :3]
         try:
-            proximal_joint(skeleton, n)
+            # the radius pivots on the ulna at the radial head: without naming that pivot
+            # it would fall back to its reference twist and lose the solved pronation
+            proximal_joint(skeleton, n, PIVOT_JOINTS)
             shared = True
         except ValueError:
             shared = False
@@ -240,7 +242,7 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
             new_R[n] = P @ rest
     root = skeleton.names[0]
     root_pose = poses[idx[root]] if np.isfinite(poses[idx[root]]).all() else skeleton.bones[root].bone_to_world
-    return pose_skeleton(skeleton, root_pose, rots)[0]
+    return pose_skeleton(skeleton, root_pose, rots, pivots=PIVOT_JOINTS)[0]
 
 
 def bind_static(skeleton: Skeleton, names: list[str], marker_bones: list[str], static_lab: np.ndarray,

@@ -320,6 +320,15 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
 
     result["summary"] = {k: med(k) for k in ("dice", "oracle_dice", "extracted_surface_mean_mm",
                                             "personal_surface_mean_mm", "affine_only_surface_mean_mm")}
+    # the affine-only baseline exists only for bones warped onto their own extracted surface:
+    # compare the warp with it on those bones alone (medians over different bone sets mislead)
+    paired = [(r["personal_surface_mean_mm"], r["affine_only_surface_mean_mm"]) for r in result["bones"].values()
+              if np.isfinite(r.get("personal_surface_mean_mm", np.nan))
+              and np.isfinite(r.get("affine_only_surface_mean_mm", np.nan))]
+    if paired:
+        p, a = np.array(paired).T
+        result["summary"]["personal_surface_mean_mm_paired"] = float(np.median(p))
+        result["summary"]["affine_only_over_personal"] = float(np.median(a / np.maximum(p, 1e-9)))
     mb = [r["marker_binding_mm"] for r in result["markers"].values()]
     result["summary"]["marker_binding_median_mm"] = float(np.median(mb)) if mb else None
     return result
@@ -337,6 +346,10 @@ def format_subject_table(result: dict[str, Any]) -> str:
     s = result["summary"]
     lines.append("median      " + "".join(f"{s[k]:>10.3f}" if s.get(k) is not None else f"{'-':>10}"
                                          for k, _ in keys))
+    if s.get("affine_only_over_personal") is not None:
+        lines.append(f"on the bones warped onto their own surface: personal median "
+                     f"{s['personal_surface_mean_mm_paired']:.2f} mm, affine-only / personal "
+                     f"{s['affine_only_over_personal']:.2f}x")
     if s.get("marker_binding_median_mm") is not None:
         lines.append(f"marker binding median {s['marker_binding_median_mm']:.2f} mm over {len(result['markers'])}")
     return "\n".join(lines)

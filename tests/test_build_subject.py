@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import yaml
 
@@ -87,6 +88,12 @@ def test_evaluate_subject_cli(built, phantom, cli):
     assert r["summary"]["marker_binding_median_mm"] is not None
     # the oracle (the truth voxelised on each station) is close to the truth
     assert r["summary"]["oracle_dice"] > 0.7
+    # the warp-vs-affine comparison is made on the same bones (those with an affine-only mesh)
+    paired = [(b["personal_surface_mean_mm"], b["affine_only_surface_mean_mm"]) for b in r["bones"].values()
+              if b.get("affine_only_surface_mean_mm") is not None]
+    if paired:
+        assert r["summary"]["personal_surface_mean_mm_paired"] == pytest.approx(np.median([p for p, _ in paired]))
+        assert r["summary"]["affine_only_over_personal"] == pytest.approx(np.median([a / p for p, a in paired]))
 
 
 def test_labels_path_reaches_the_truth(phantom, tmp_path):
@@ -199,6 +206,46 @@ def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
     kept = neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES)
     for i in foot:
         assert Rotation.from_matrix(kept[i][:3, :3].T @ flexed[i][:3, :3]).magnitude() < np.radians(0.01)
+
+
+def test_joint_consistent_keeps_the_solved_pronation():
+    """A static whose radius is pronated 40 deg about the ulna (about the radial head) keeps it through
+    joint_consistent: the radius shares three joint-centre names with the ulna and used to fall back to
+    its reference twist (the phantom's wrist markers were then bound 35-47 mm off)."""
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_subject import joint_consistent
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    ulna, radius = sk.bones["ulna_r"], sk.bones["radius_r"]
+    head = ulna.landmark_in_world("proximal_radioulnar") if "proximal_radioulnar" in ulna.landmarks else \
+        ulna.bone_to_world[:3, :3] @ ulna.joint_centres["proximal_radioulnar"] + ulna.bone_to_world[:3, 3]
+    distal = ulna.bone_to_world[:3, :3] @ ulna.joint_centres["distal_radioulnar"] + ulna.bone_to_world[:3, 3]
+    axis = (distal - head) / np.linalg.norm(distal - head)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(40.0) * axis).as_matrix()
+    T[:3, 3] = head - T[:3, :3] @ head
+    moved = [sk.names.index(n) for n in sk.names if n == "radius_r" or _descends(sk, n, "radius_r")]
+    posed = ref.copy()
+    posed[moved] = T @ ref[moved]
+    out = joint_consistent(sk, posed)
+    i = sk.names.index("radius_r")
+    assert Rotation.from_matrix(out[i][:3, :3].T @ posed[i][:3, :3]).magnitude() < np.radians(0.01)
+    assert np.allclose(out[i][:3, 3], posed[i][:3, 3], atol=1e-6)
+    # the hand rides on the turned radius
+    k = sk.names.index("carpals_r")
+    assert np.allclose(out[k], posed[k], atol=1e-6)
+
+
+def _descends(sk, name, ancestor):
+    p = sk.bones[name].parent
+    while p is not None:
+        if p == ancestor:
+            return True
+        p = sk.bones[p].parent
+    return False
 
 
 def test_seeds_file_settings(tmp_path):

@@ -67,6 +67,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Motion, Skeleton
+from bonecap.skeleton.kinematics import PIVOT_JOINTS
 
 __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_markers", "DEFAULT_JOINT_WEIGHT"]
 
@@ -75,11 +76,8 @@ __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_mark
 #: letting a bone with many markers disagree with a poorly marked neighbour.
 DEFAULT_JOINT_WEIGHT = 10.0
 
-# Where a bone shares several joint-centre names with its parent, the one that is a
-# true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
-# with the ulna; it turns about the axis through the radial head, whose centre the
-# generic skeleton names "proximal_radioulnar" -- the other two slide by design.
-_PREFERRED_JOINTS = ("proximal_radioulnar",)
+# the radius turns on the ulna about the radial head (see PIVOT_JOINTS)
+_PREFERRED_JOINTS = PIVOT_JOINTS
 _MIN_SPREAD = 1e-3  # as bonecap.motion.rigid: sqrt(s2/s1) below this is collinear
 
 

@@ -15,16 +15,33 @@ the root pose is given in (``root_to_lab``), usually the lab.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["proximal_joint", "pose_skeleton"]
+__all__ = ["proximal_joint", "pose_skeleton", "PIVOT_JOINTS"]
+
+#: Where a bone shares several joint-centre names with its parent, the one that is a
+#: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
+#: with the ulna; it turns about the axis through the radial head, whose centre the
+#: generic skeleton names "proximal_radioulnar" -- the other two slide by design.
+PIVOT_JOINTS = ("proximal_radioulnar",)
 
 
-def proximal_joint(skeleton: Skeleton, bone: str) -> tuple[str, np.ndarray, np.ndarray]:
+def proximal_joint(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) -> tuple[str, np.ndarray, np.ndarray]:
     """The joint where ``bone`` meets its parent.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    bone : str
+    pivots : sequence of str
+        Where the bone shares several joint-centre names with its parent, the
+        first of these among them is the joint (e.g. :data:`PIVOT_JOINTS` for
+        the radius on the ulna); without one, sharing several is an error.
 
     Returns
     -------
@@ -38,14 +55,17 @@ def proximal_joint(skeleton: Skeleton, bone: str) -> tuple[str, np.ndarray, np.n
     Raises
     ------
     ValueError
-        If the bone is the root, or it shares no (or more than one) joint
-        centre name with its parent.
+        If the bone is the root, or it shares no (or more than one, none of
+        them in ``pivots``) joint centre name with its parent.
     """
     b = skeleton.bones[bone]
     if b.parent is None:
         raise ValueError(f"bone {bone!r} is the root: it has no proximal joint")
     parent = skeleton.bones[b.parent]
     shared = sorted(set(b.joint_centres) & set(parent.joint_centres))
+    pivot = [n for n in pivots if n in shared]
+    if len(shared) > 1 and pivot:
+        shared = pivot[:1]
     if len(shared) != 1:
         raise ValueError(f"bone {bone!r} and its parent {b.parent!r} must share exactly one joint centre name, "
                          f"they share {shared or 'none'}")
@@ -66,7 +86,8 @@ def _as_matrices(rot, n_frames: int, bone: str) -> np.ndarray:
 
 
 def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
-                  joint_rotations: dict[str, np.ndarray] | None = None) -> np.ndarray:
+                  joint_rotations: dict[str, np.ndarray] | None = None, *,
+                  pivots: Sequence[str] = ()) -> np.ndarray:
     """Bone poses for a sequence of joint rotations.
 
     Parameters
@@ -81,7 +102,9 @@ def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
         rotation vectors (radians) or (F, 3, 3) matrices. A bone left out keeps
         its reference orientation relative to its parent and needs no joint
         centre; a rotated bone must share exactly one joint centre name with
-        its parent (:func:`proximal_joint`).
+        its parent (:func:`proximal_joint`), or name one of ``pivots``.
+    pivots : sequence of str
+        See :func:`proximal_joint` (e.g. :data:`PIVOT_JOINTS`).
 
     Returns
     -------
@@ -119,7 +142,7 @@ def pose_skeleton(skeleton: Skeleton, root_to_lab: np.ndarray,
         if name in joint_rotations:
             # Only a rotated bone needs its joint centre; one that just follows its
             # parent (a sternum on T1) may have none.
-            _, c_parent, _ = proximal_joint(skeleton, name)
+            _, c_parent, _ = proximal_joint(skeleton, name, pivots)
             R = _as_matrices(joint_rotations[name], F, name)
             J[:, :3, :3] = R
             J[:, :3, 3] = c_parent - R @ c_parent  # rotate about the joint centre
