@@ -956,7 +956,8 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
                 # end lies on the other side of the ulna. Its line is turned about the registered ulna's
                 # radio-ulnar axis to where the image is brightest along it (marrow) and the stack is
                 # segmented again from there.
-                turn = _radius_turn(v, seeds[radius_n], Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U)
+                turn = _radius_turn(v, _marrow_axis(Rb, seeds[radius_n]),
+                                    Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U, body_mask=body)
                 if turn is not None:
                     seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
                     lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
@@ -1017,27 +1018,58 @@ def _turn_about(point: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
     return R
 
 
-def _radius_turn(volume: Volume, radius_line: np.ndarray, ulna_move: np.ndarray, ulna: Bone,
-                 step_deg: float = 5.0) -> np.ndarray | None:
+def _marrow_axis(bone: Bone, fallback: np.ndarray, n: int = 24, span=(0.05, 0.7)) -> np.ndarray:
+    """Points on a long bone's medullary axis (world, its reference pose), distal part first.
+
+    Centroids of the endosteal (inner) mesh in ``n`` slabs across the bone's
+    long (ISB y) axis over ``span`` of its length from the distal end. A
+    straight joint-to-joint line misses a bowed radius's thin marrow (its
+    median intensity in a forearm stack was the muscle's); these points stay
+    in it. Without an inner mesh: ``n`` points on ``fallback``'s distal two thirds.
+    """
+    inner = bone.inner_mesh
+    if inner is None or len(inner.vertices) < 50:
+        f = np.asarray(fallback, float)
+        t = np.linspace(1 / 3, 1.0, n)[:, None]
+        return f[0] + t * (f[-1] - f[0])
+    v = inner.vertices
+    y = v[:, 1]
+    lo, hi = float(y.min()), float(y.max())
+    half = (hi - lo) / (2 * n)
+    pts = [v[np.abs(y - yy) < half].mean(axis=0) for yy in lo + np.linspace(*span, n) * (hi - lo)
+           if (np.abs(y - yy) < half).sum() >= 5]
+    T = bone.bone_to_world
+    return np.array(pts) @ T[:3, :3].T + T[:3, 3]
+
+
+def _radius_turn(volume: Volume, axis_points: np.ndarray, ulna_move: np.ndarray, ulna: Bone,
+                 step_deg: float = 5.0, body_mask: np.ndarray | None = None,
+                 min_depth_mm: float = 5.0) -> np.ndarray | None:
     """The turn about the registered ulna's radio-ulnar axis that puts the radius's line in its marrow.
 
-    The radius line (radial head -> wrist, at the MRI pose) is carried with the
-    ulna's registration, then turned about the radio-ulnar axis in ``step_deg``
-    steps; at each turn the image is sampled along the line's distal two
-    thirds (the radial head stays on the axis whatever the twist) and the turn
-    with the highest median -- the line inside bright marrow, not in muscle --
-    wins. Returns the 4x4 turn (LPS, applied after ``ulna_move``), or None
-    without the ulna's radio-ulnar joints.
+    Points on the radius's medullary axis at the MRI pose (:func:`_marrow_axis`,
+    its distal part: the radial head stays on the turning axis whatever the
+    twist) are carried with the ulna's registration, then turned about the
+    radio-ulnar axis in ``step_deg`` steps; at each turn the image is sampled
+    at them and the turn with the highest median -- the points inside bright
+    marrow, not in muscle -- wins (the marrow is a few mm wide: the peak is
+    ~20 deg wide, hence the fine step). Subcutaneous fat is as bright as marrow in T2: with ``body_mask``,
+    samples less than ``min_depth_mm`` under the skin count as air, so a line
+    swung out into the fat layer loses to one in the marrow (without it, a
+    99.5 deg stack picked a 40 deg turn). Returns the 4x4 turn (LPS, applied
+    after ``ulna_move``), or None without the ulna's radio-ulnar joints.
     """
-    from scipy.ndimage import map_coordinates
+    from scipy.ndimage import distance_transform_edt, map_coordinates
 
     ax = _radioulnar_axis(ulna, ulna_move)
-    if ax is None or len(radius_line) < 2:
+    if ax is None or len(axis_points) < 2:
         return None
-    line = np.asarray(radius_line, float) @ ulna_move[:3, :3].T + ulna_move[:3, 3]
-    t = np.linspace(1 / 3, 1.0, 40)[:, None]
-    pts = line[0] + t * (line[-1] - line[0])
+    pts = np.asarray(axis_points, float) @ ulna_move[:3, :3].T + ulna_move[:3, 3]
     data = np.asarray(volume.data, np.float32)
+    if body_mask is not None:
+        # depth under the skin, in mm (voxel spacing per axis)
+        deep = distance_transform_edt(np.asarray(body_mask, bool), sampling=volume.spacing) >= min_depth_mm
+        data = np.where(deep, data, 0.0).astype(np.float32)
     best, best_score = None, -np.inf
     for ang in np.arange(0.0, 360.0, step_deg):
         R = _turn_about(ax[0], ax[1], ang)
