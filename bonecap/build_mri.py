@@ -16,8 +16,11 @@
    onto the extracted bones (affine + Gaussian RBF); bones the MRI missed come
    from their neighbours' warps; the skull from the head's skin.
 7. **Markers**: each marker on the personal skin over its landmark; an
-   MRI-visible capsule found near it replaces the guess; with a static trial
-   the skeleton is posed to it and the measured positions are bound.
+   MRI-visible capsule found near it (centre one marker-minus-capsule radius
+   out along the skin normal) replaces the guess; with a static trial the
+   skeleton is posed to it (a shank without capsules keeps the MRI's knee
+   rotation, the foot its roll from the shank) and the measured positions are
+   bound.
 8. **Forearm model** from three forearm stacks (``--forearm-poses``).
 
 Everything is in LPS millimetres; the subject's world frame is ``lps``.
@@ -779,9 +782,21 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         snames, lab = static_markers(static_trial, mset, path=static_path)
         bones = [subject.markers[n].bone for n in snames]
         local = np.array([subject.markers[n].local for n in snames])
+        solved = pose_to_static(sk, bones, local, lab)
+        # The shank's twist about its long axis hangs on one shank marker placed over a landmark-less
+        # shaft (10-12 deg of error on the phantom). Where no capsule measured the shank's markers, the
+        # knee's axial rotation is taken from the MRI: in full extension the knee is locked (screw-home)
+        # lying as standing, so the tibia keeps its MRI twist relative to the femur. The hip and the
+        # shoulder are not locked (legs roll outward supine, the arms are abducted in the static): their
+        # twist stays the markers'.
+        guessed = [t for t in ("tibia_r", "tibia_l") if t in sk.bones and any(
+            subject.markers[n].bone in (t, t.replace("tibia", "fibula")) and subject.markers[n].source != "capsule"
+            for n in snames)]
+        if guessed:
+            solved = neutral_twist(sk, solved, tuple(guessed))
+        report["static_knee_twist_from_mri"] = guessed
         # the foot's roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
-        poses = joint_consistent(sk, neutral_twist(sk, pose_to_static(sk, bones, local, lab), FOOT_PREFIXES,
-                                                   FOOT_AXES))
+        poses = joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
         bound = bind_static(sk, snames, bones, lab, poses)
         moved = {n: float(np.linalg.norm(bound[n].local - subject.markers[n].local)) for n in bound}
         subject.markers.update(bound)
