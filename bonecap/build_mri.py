@@ -582,7 +582,8 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         bar.set_postfix_str("forearm")
         side = _stack_side(forearm_poses[0], personal)
         try:
-            model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side)
+            model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side,
+                                                            markers=subject.markers)
             subject.forearm = {side: model}
         except DataError as exc:
             # the stacks could not be read as three poses of this forearm: the
@@ -918,27 +919,50 @@ def _stack_side(path, personal: Skeleton) -> str:
 
 
 def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                            max_icp_mm: float = 6.0) -> tuple[dict[str, Any], dict[str, Any]]:
+                            max_icp_mm: float = 6.0, markers=None) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
     For each stack: the ulna and radius are segmented with the cortical rule
     (seeds: the personal bones' axes), meshed, and the personal bones are
     rigidly registered onto them (ICP), which gives each bone's pose in that
-    stack; the styloids then follow their bones and the epicondyles stay with
-    the humerus. The twist of each stack is measured from those four points
+    stack. The twist of each stack is measured from four points
     (:func:`bonecap.motion.forearm.forearm_twist`) — the paper measured 0°,
     99.5° and 172.1°, not the nominal 0/90/180 — and the quadratics are fitted
-    against the measured twists. Capsules found in the stacks are reported.
+    against the measured twists. With ``markers`` (the subject's bound wrist and
+    elbow markers, :data:`~bonecap.motion.forearm.FOREARM_MARKERS`) the four
+    points are those markers carried by the registered bones, the epicondyle
+    markers with the ulna as ``animate`` carries them: the twist and the
+    control-point segments are then the same measure ``animate`` uses on a
+    trial (the paper measured its stacks on the capsules that marked the marker
+    spots); the styloid and epicondyle landmarks lie ~8 mm deeper and gave a
+    twist scale the trials did not reproduce. Without them, the landmarks.
+    Capsules found in the stacks are reported.
+
+    Parameters
+    ----------
+    dirs : list of path
+        The three stacks (DICOM folders), any order.
+    personal : Skeleton
+        The personal skeleton at the MRI pose (LPS), with ulna, radius and humerus meshes.
+    side : {"r", "l"}
+    max_icp_mm : float
+        A bone whose registration leaves a larger mean residual is not in that stack: error.
+    markers : mapping of str -> MarkerBinding, optional
+        The subject's markers (bone, position in the bone frame).
 
     Returns
     -------
     model : dict
         :meth:`ForearmModel.to_dict` plus ``side``.
     report : dict
-        Per stack: measured twist, ICP residuals, capsule centres (LPS).
+        Per stack: measured twist, ICP residuals, capsule centres (LPS); ``twist_from``.
+
+    References
+    ----------
+    .. [1] Kojima et al., section 8.2.
     """
     from bonecap.meshing import mesh_from_slices
-    from bonecap.motion.forearm import fit_forearm_model, forearm_twist
+    from bonecap.motion.forearm import FOREARM_MARKERS, fit_forearm_model, forearm_twist
     from bonecap.segmentation.bones import segment_bones
     from bonecap.segmentation.capsules import find_capsules
     from bonecap.segmentation.skin import segment_body
@@ -953,6 +977,8 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     U, Rb, H = (personal.bones[n] for n in (ulna_n, radius_n, hum_n))
     lat = _landmark(H, "lateral_epicondyle", H.bone_to_world)
     med = _landmark(H, "medial_epicondyle", H.bone_to_world)
+    names = FOREARM_MARKERS[side]
+    use_markers = markers is not None and all(n in markers and markers[n].bone in personal.bones for n in names)
     poses, report = [], {"stacks": {}, "capsules": {}}
     for d in dirs:
         vols = load_stations([d])
@@ -993,8 +1019,21 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
             if np.mean(res) > max_icp_mm:
                 raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
                                 f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
-        wrist = np.array([_landmark(Rb, "radial_styloid", Ts[radius_n]), _landmark(U, "ulnar_styloid", Ts[ulna_n])])
-        poses.append((Ts[ulna_n], Ts[radius_n], wrist, np.array([lat, med])))
+        if use_markers:
+            # each marker rides on its bone's registration in this stack; the ones on the humerus
+            # (epicondyles) are carried with the ulna, as animate carries them on a trial
+            carry_u = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
+            pts = []
+            for n in names:
+                mb = markers[n]
+                T = Ts[mb.bone] if mb.bone in Ts else carry_u @ personal.bones[mb.bone].bone_to_world
+                pts.append(T[:3, :3] @ np.asarray(mb.local, float) + T[:3, 3])
+            wrist, elbow = np.array(pts[:2]), np.array(pts[2:])
+        else:
+            wrist = np.array([_landmark(Rb, "radial_styloid", Ts[radius_n]),
+                              _landmark(U, "ulnar_styloid", Ts[ulna_n])])
+            elbow = np.array([lat, med])
+        poses.append((Ts[ulna_n], Ts[radius_n], wrist, elbow))
         centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
         report["capsules"][Path(d).name] = centres.tolist()
     wr = np.array([p[2] for p in poses])
@@ -1006,9 +1045,13 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     model = fit_forearm_model(theta, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), wr, el,
                               side=side)
     out = model.to_dict()
+    # the subject's MRI knows where its radio-ulnar axis is: the radius turns about it rather than
+    # about the line through the control points on the skin markers' segments (ForearmModel.radius_axis)
+    out["radius_axis"] = "anatomical"
     out["side"] = side
     out["fitted_from"] = [str(d) for d in dirs]
     report["twists_deg"] = theta.tolist()
+    report["twist_from"] = "markers" if use_markers else "landmarks"
     report["used"] = True
     return out, report
 

@@ -167,6 +167,16 @@ class ForearmModel:
         definition, used with its published coefficients: a subject without
         stacks has no measured 0 degree pose, and the static trial's forearm is
         wherever the subject held it (pyomeca's static: ~68 degrees).
+    radius_axis : {"markers", "anatomical"}
+        The line the radius turns about. ``"markers"``: through its control
+        points on the wrist and elbow marker segments (the paper's). The
+        marker segments lie on the skin, and a line through points on them
+        misses the true axis (radial head to ulnar head) by ~10 mm, which a
+        half turn carries into 20 mm of radius position error on the
+        phantom. ``"anatomical"``: the subject's own radio-ulnar axis (the
+        ulna's ``proximal_radioulnar`` and ``distal_radioulnar`` joint
+        centres, as the MRI placed them), carried with the ulna; ``f(theta)``
+        is the same. Falls back to the markers where the ulna lacks them.
     """
 
     ulna_rotation: tuple
@@ -178,12 +188,15 @@ class ForearmModel:
     unit: str = "quarter_turn"
     theta_range_deg: tuple = (0.0, 180.0)
     theta_zero: str = "reference"
+    radius_axis: str = "markers"
 
     def __post_init__(self):
         if self.unit not in _UNITS:
             raise ValueError(f"unit must be one of {sorted(_UNITS)}, got {self.unit!r}")
         if self.theta_zero not in ("reference", "anatomical"):
             raise ValueError(f"theta_zero must be 'reference' or 'anatomical', got {self.theta_zero!r}")
+        if self.radius_axis not in ("markers", "anatomical"):
+            raise ValueError(f"radius_axis must be 'markers' or 'anatomical', got {self.radius_axis!r}")
         lo, hi = self.theta_range_deg
         if not lo < hi:
             raise ValueError(f"theta_range_deg must be increasing, got {self.theta_range_deg}")
@@ -505,6 +518,16 @@ def forearm_poses_from_markers(skeleton, forearm, labels: Sequence[str], marker_
         carry_r = carry if carry_r is None else carry_r
         poses = forearm_bone_poses(model, theta, carry @ U_ref,
                                    carry_r @ skeleton.bones[radius].bone_to_world, m[:, :2], m[:, 2:], side=side)
+        ub = skeleton.bones[ulna]
+        if model.radius_axis == "anatomical" and {"proximal_radioulnar", "distal_radioulnar"} <= set(ub.joint_centres):
+            # the radius turns about the subject's radio-ulnar axis, carried with the ulna
+            ends = np.array([ub.landmark_in_world("proximal_radioulnar"), ub.landmark_in_world("distal_radioulnar")])
+            pe = np.einsum("fij,j->fi", carry_r[:, :3, :3], ends[0]) + carry_r[:, :3, 3]
+            pw = np.einsum("fij,j->fi", carry_r[:, :3, :3], ends[1]) + carry_r[:, :3, 3]
+            d = _unit(pe - pw) if side == "r" else _unit(pw - pe)
+            th = np.clip(theta, *model.theta_range_deg)
+            poses["radius"] = _axis_rotation(pw, d, model.rotation_deg("radius", th)) @ (
+                carry_r @ skeleton.bones[radius].bone_to_world)
         out[ulna] = {"transforms": poses["ulna"], "clamped": poses["clamped"]}
         out[radius] = {"transforms": poses["radius"], "clamped": poses["clamped"]}
     return out
