@@ -30,6 +30,7 @@ Without ``--phantom`` a tiny phantom is made in a temporary folder (seed 1).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import tempfile
@@ -211,9 +212,13 @@ def main():
     print("| model | bone | deg med/p95 (all) | mm med/p95 (all) | deg med/p95 (between fitted twists) "
           "| flagged frames |")
     print("|---|---|---|---|---|---|")
+    # the subject's model turning the radius about its own radio-ulnar axis (what build-subject fits)
+    anat = dataclasses.replace(model, radius_axis="anatomical")
     for label, fm, seg in (("none (lsq-J)", None, seg_true), ("paper (lsq-J)", PAPER_MODEL, seg_true),
                            ("subject (lsq-J)", {"r": model, "l": model}, seg_true),
-                           ("none (lsq)", None, None), ("subject (lsq)", {"r": model, "l": model}, None)):
+                           ("subject, anatomical axis (lsq-J)", {"r": anat, "l": anat}, seg_true),
+                           ("none (lsq)", None, None), ("subject (lsq)", {"r": model, "l": model}, None),
+                           ("subject, anatomical axis (lsq)", {"r": anat, "l": anat}, None)):
         mo = solve_lsq(skel, mb, local, meas, marker_labels=labels, rate_hz=rate, forearm=fm, segments=seg)
         for b in ("radius_r", "ulna_r", "radius_l", "ulna_l"):
             i = names.index(b)
