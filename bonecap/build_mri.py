@@ -961,12 +961,7 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     ----------
     .. [1] Kojima et al., section 8.2.
     """
-    from bonecap.meshing import mesh_from_slices
     from bonecap.motion.forearm import FOREARM_MARKERS, fit_forearm_model, forearm_twist
-    from bonecap.segmentation.bones import segment_bones
-    from bonecap.segmentation.capsules import find_capsules
-    from bonecap.segmentation.skin import segment_body
-    from bonecap.skeleton.warp import rigid_icp
 
     if len(dirs) != 3:
         raise InputError(f"--forearm-poses takes three stacks, got {len(dirs)}")
@@ -980,45 +975,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     names = FOREARM_MARKERS[side]
     use_markers = markers is not None and all(n in markers and markers[n].bone in personal.bones for n in names)
     poses, report = [], {"stacks": {}, "capsules": {}}
-    for d in dirs:
-        vols = load_stations([d])
-        v = max(vols, key=lambda x: x.data.size)
-        body = segment_body(v)
-        # each bone's own axis: the ulna from the elbow to its head, the radius from its head to the wrist
-        # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided)
-        axis_joints = {ulna_n: ("elbow", "distal_radioulnar"), radius_n: ("proximal_radioulnar", "wrist")}
-        seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in axis_joints[n]
-                              if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
-        lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
-        Ts = {}
-        for n, bone in ((ulna_n, U), (radius_n, Rb)):
-            if n == radius_n:
-                # The radius's seeds were its line at the MRI pose; pronated by up to half a turn, its distal
-                # end lies on the other side of the ulna. Its line is turned about the registered ulna's
-                # radio-ulnar axis to where the image is brightest along it (marrow) and the stack is
-                # segmented again from there.
-                turn = _radius_turn(v, _marrow_axis(Rb, seeds[radius_n]),
-                                    Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U, body_mask=body)
-                if turn is not None:
-                    seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
-                    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
-                    report["stacks"].setdefault(str(d), {})["radius_seed_turn_deg"] = float(
-                        np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
-            if n not in ids or not (lab == ids[n]).any():
-                raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
-            target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
-            pts = bone.mesh.transformed(bone.bone_to_world).vertices
-            if n == ulna_n:
-                T, res = rigid_icp(pts, target)
-            else:
-                ulna_move = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
-                T, res = _radius_icp(pts, target, ulna_move, U,
-                                     extra_starts=[turn @ ulna_move] if turn is not None else ())
-            Ts[n] = T @ bone.bone_to_world
-            report["stacks"].setdefault(str(d), {})[f"{n}_icp_mm"] = float(np.mean(res))
-            if np.mean(res) > max_icp_mm:
-                raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
-                                f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
+    # the three stacks are independent: registered in worker processes where there are cores
+    for d, (Ts, stack_report, capsules) in zip(dirs, _map_stacks(dirs, personal, side, max_icp_mm)):
+        report["stacks"][str(d)] = stack_report
         if use_markers:
             # each marker rides on its bone's registration in this stack; the ones on the humerus
             # (epicondyles) are carried with the ulna, as animate carries them on a trial
@@ -1034,8 +993,7 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
                               _landmark(U, "ulnar_styloid", Ts[ulna_n])])
             elbow = np.array([lat, med])
         poses.append((Ts[ulna_n], Ts[radius_n], wrist, elbow))
-        centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
-        report["capsules"][Path(d).name] = centres.tolist()
+        report["capsules"][Path(d).name] = capsules
     wr = np.array([p[2] for p in poses])
     el = np.array([p[3] for p in poses])
     raw = forearm_twist(wr[:, 0], wr[:, 1], el[:, 0], el[:, 1], side=side)
@@ -1054,6 +1012,103 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     report["twist_from"] = "markers" if use_markers else "landmarks"
     report["used"] = True
     return out, report
+
+
+_STACK_JOB: tuple = ()
+
+
+def _stack_job(d):
+    """Worker: one stack (the job's skeleton and settings inherited through fork)."""
+    try:
+        return "ok", _register_stack(d, *_STACK_JOB)
+    except DataError as exc:  # picklable: raised again in the parent
+        return "error", exc
+
+
+def _map_stacks(dirs, personal: Skeleton, side: str, max_icp_mm: float) -> list:
+    """:func:`_register_stack` for every stack, in ``BONECAP_WORKERS`` (default: up to 3 CPUs) forked processes."""
+    global _STACK_JOB
+    workers = int(os.environ.get("BONECAP_WORKERS", "0")) or min(os.cpu_count() or 1, 3)
+    pool = None
+    if workers > 1 and len(dirs) > 1:
+        try:
+            import multiprocessing as mp
+
+            if mp.current_process().daemon:
+                raise RuntimeError("daemonic processes cannot have children")
+            _STACK_JOB = (personal, side, max_icp_mm)
+            pool = mp.get_context("fork").Pool(min(workers, len(dirs)))
+        except Exception:                      # no fork here: one stack after the other
+            pool, _STACK_JOB = None, ()
+    if pool is None:
+        return [_register_stack(d, personal, side, max_icp_mm) for d in dirs]
+    try:
+        out = pool.map(_stack_job, list(dirs), chunksize=1)
+    finally:
+        pool.terminate()
+        pool.join()
+        _STACK_JOB = ()
+    for status, res in out:
+        if status == "error":
+            raise res
+    return [res for _, res in out]
+
+
+def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
+    """One forearm stack: ulna and radius segmented and the personal bones registered onto them.
+
+    Returns ``(Ts, report, capsules)``: each bone's pose in the stack (bone -> LPS), the stack's
+    report entries (ICP residuals, the radius seed's turn) and the capsule centres found (LPS).
+    """
+    from bonecap.meshing import mesh_from_slices
+    from bonecap.segmentation.bones import segment_bones
+    from bonecap.segmentation.capsules import find_capsules
+    from bonecap.segmentation.skin import segment_body
+    from bonecap.skeleton.warp import rigid_icp
+
+    ulna_n, radius_n = f"ulna_{side}", f"radius_{side}"
+    U, Rb = personal.bones[ulna_n], personal.bones[radius_n]
+    report: dict[str, Any] = {}
+    vols = load_stations([d])
+    v = max(vols, key=lambda x: x.data.size)
+    body = segment_body(v)
+    # each bone's own axis: the ulna from the elbow to its head, the radius from its head to the wrist
+    # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided)
+    axis_joints = {ulna_n: ("elbow", "distal_radioulnar"), radius_n: ("proximal_radioulnar", "wrist")}
+    seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in axis_joints[n]
+                          if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
+    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+    Ts = {}
+    for n, bone in ((ulna_n, U), (radius_n, Rb)):
+        if n == radius_n:
+            # The radius's seeds were its line at the MRI pose; pronated by up to half a turn, its distal
+            # end lies on the other side of the ulna. Its line is turned about the registered ulna's
+            # radio-ulnar axis to where the image is brightest along it (marrow) and the stack is
+            # segmented again from there.
+            turn = _radius_turn(v, _marrow_axis(Rb, seeds[radius_n]),
+                                Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U, body_mask=body)
+            if turn is not None:
+                seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
+                lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+                report["radius_seed_turn_deg"] = float(
+                    np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
+        if n not in ids or not (lab == ids[n]).any():
+            raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
+        target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
+        pts = bone.mesh.transformed(bone.bone_to_world).vertices
+        if n == ulna_n:
+            T, res = rigid_icp(pts, target)
+        else:
+            ulna_move = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
+            T, res = _radius_icp(pts, target, ulna_move, U,
+                                 extra_starts=[turn @ ulna_move] if turn is not None else ())
+        Ts[n] = T @ bone.bone_to_world
+        report[f"{n}_icp_mm"] = float(np.mean(res))
+        if np.mean(res) > max_icp_mm:
+            raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
+                            f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
+    centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
+    return Ts, report, centres.tolist()
 
 
 def _radioulnar_axis(ulna: Bone, ulna_move: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -1151,22 +1206,27 @@ def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone
     it settled 144 degrees off. The radius turns about the radio-ulnar axis (the
     ulna's proximal and distal radio-ulnar joints), so ICP starts from the ulna's
     registration followed by turns about that axis every ``step_deg``; the
-    lowest mean residual wins.
+    lowest mean residual wins. The starts are compared on a few hundred of the
+    bone's points (a coarse ICP each), and only the winner is refined on all
+    of them: the same choice at a fifth of the time (the forearm stage was
+    the slowest of build-subject).
     """
 
-    from bonecap.skeleton.warp import rigid_icp
+    from bonecap.skeleton.warp import _as_surface, rigid_icp
 
+    surface = _as_surface(target)  # built once for every start
     starts = [ulna_move, *extra_starts]
     ax = _radioulnar_axis(ulna, ulna_move)
     if ax is not None:
         for ang in np.arange(step_deg, 360.0, step_deg):
             starts.append(_turn_about(ax[0], ax[1], ang) @ ulna_move)
+    coarse = pts[np.linspace(0, len(pts) - 1, min(len(pts), 400)).astype(int)]
     best = None
     for C in starts:
-        T, res = rigid_icp(pts, target, init=C)
+        T, res = rigid_icp(coarse, surface, init=C, iterations=30)
         if best is None or float(np.mean(res)) < float(np.mean(best[1])):
             best = (T, res)
-    return best
+    return rigid_icp(pts, surface, init=best[0])
 
 
 def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
