@@ -26,8 +26,21 @@ def built(phantom, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("subject") / "s"
     stations = sorted(str(p) for p in (phantom / "mri").glob("station_*"))
-    report = run_build_subject(stations, out, static=phantom / "trials/static.c3d")
+    # the tiny preset's forearm stacks (1.5 mm pixels, 5 mm slices) are too coarse for a forearm's marrow:
+    # the stage must fail cleanly and leave the paper's model in place
+    stacks = sorted((phantom / "mri").glob("forearm_*"), key=lambda p: float(p.name.split("_")[1]))
+    report = run_build_subject(stations, out, static=phantom / "trials/static.c3d", forearm_poses=stacks)
     return out, report
+
+
+def test_forearm_stacks_that_do_not_fit_leave_the_paper_model(built):
+    from bonecap.subject import read_subject
+
+    out, report = built
+    fa = report["forearm"]
+    assert fa["used"] is False and "forearm_" in fa["reason"] and "ulna" in fa["reason"]
+    assert set(fa["capsules"]) == {"forearm_0", "forearm_99.5", "forearm_172.1"}
+    assert not read_subject(out, load_meshes=False).forearm      # empty: the paper's coefficients
 
 
 def _surface_mean(a, b) -> float:
