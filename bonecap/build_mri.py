@@ -38,6 +38,7 @@ import numpy as np
 from bonecap.errors import DataError, InputError
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
+from bonecap.parallel import fork_map
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
            "SEGMENTED_BONES"]
@@ -478,7 +479,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     bar.set_postfix_str("skin")
     # the body masks (Otsu's boundary) place the template and bound the density rule; the skin's own
     # masks (the half-way boundary) make the skin mesh the markers are put on
-    both = [segment_body(v, skin=True) for v in vols]
+    both = fork_map(lambda v: segment_body(v, skin=True), vols)
     bodies = [b for b, _ in both]
     skin = mesh_from_slices([(s, v.affine) for (_, s), v in zip(both, vols)], voxel_mm=4.0,
                             target_faces=40000) if vols else None
@@ -515,11 +516,13 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         bar.set_postfix_str("bone contours")
         pieces = []
         ids: dict[str, int] = {}
-        for v, body in zip(vols, bodies):
-            try:
-                lab, station_ids = segment_bones(v, seed_map, body_mask=body, progress=False, **seg_settings)
-            except ValueError as exc:     # an unknown option in the seeds file
-                raise InputError(str(exc), seeds) from None
+        try:
+            # stations are independent: one per worker process
+            segmented = fork_map(lambda vb: segment_bones(vb[0], seed_map, body_mask=vb[1], progress=False,
+                                                          **seg_settings), list(zip(vols, bodies)))
+        except ValueError as exc:     # an unknown option in the seeds file
+            raise InputError(str(exc), seeds) from None
+        for v, (lab, station_ids) in zip(vols, segmented):
             # one id space across stations
             remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
             for name, i in station_ids.items():
@@ -606,7 +609,10 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     def qc(folder: Path) -> None:
         from bonecap.qc import write_build_qc
 
+        t0 = time.perf_counter()
         write_build_qc(Path(folder) / "qc", subject, qc_data, report)
+        # written to report.json after this: the speed target counts the build without its pictures
+        timings["qc pictures"] = round(time.perf_counter() - t0, 2)
 
     # extracted meshes are part of the result (the evaluation scores them)
     def qc_and_meshes(folder: Path) -> None:
@@ -765,7 +771,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         find_capsules = None
     capsule_names: dict[str, np.ndarray] = {}
     if find_capsules is not None:
-        found = [find_capsules(v)[0] for v in vols]
+        found = fork_map(lambda v: find_capsules(v)[0], vols)
         centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
         if len(centres):
             capsule_names = match_capsules(centres, placed, max_distance_mm=25.0)
@@ -976,7 +982,8 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     use_markers = markers is not None and all(n in markers and markers[n].bone in personal.bones for n in names)
     poses, report = [], {"stacks": {}, "capsules": {}}
     # the three stacks are independent: registered in worker processes where there are cores
-    for d, (Ts, stack_report, capsules) in zip(dirs, _map_stacks(dirs, personal, side, max_icp_mm)):
+    registered = fork_map(lambda d: _register_stack(d, personal, side, max_icp_mm), dirs)
+    for d, (Ts, stack_report, capsules) in zip(dirs, registered):
         report["stacks"][str(d)] = stack_report
         if use_markers:
             # each marker rides on its bone's registration in this stack; the ones on the humerus
@@ -1012,46 +1019,6 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     report["twist_from"] = "markers" if use_markers else "landmarks"
     report["used"] = True
     return out, report
-
-
-_STACK_JOB: tuple = ()
-
-
-def _stack_job(d):
-    """Worker: one stack (the job's skeleton and settings inherited through fork)."""
-    try:
-        return "ok", _register_stack(d, *_STACK_JOB)
-    except DataError as exc:  # picklable: raised again in the parent
-        return "error", exc
-
-
-def _map_stacks(dirs, personal: Skeleton, side: str, max_icp_mm: float) -> list:
-    """:func:`_register_stack` for every stack, in ``BONECAP_WORKERS`` (default: up to 3 CPUs) forked processes."""
-    global _STACK_JOB
-    workers = int(os.environ.get("BONECAP_WORKERS", "0")) or min(os.cpu_count() or 1, 3)
-    pool = None
-    if workers > 1 and len(dirs) > 1:
-        try:
-            import multiprocessing as mp
-
-            if mp.current_process().daemon:
-                raise RuntimeError("daemonic processes cannot have children")
-            _STACK_JOB = (personal, side, max_icp_mm)
-            pool = mp.get_context("fork").Pool(min(workers, len(dirs)))
-        except Exception:                      # no fork here: one stack after the other
-            pool, _STACK_JOB = None, ()
-    if pool is None:
-        return [_register_stack(d, personal, side, max_icp_mm) for d in dirs]
-    try:
-        out = pool.map(_stack_job, list(dirs), chunksize=1)
-    finally:
-        pool.terminate()
-        pool.join()
-        _STACK_JOB = ()
-    for status, res in out:
-        if status == "error":
-            raise res
-    return [res for _, res in out]
 
 
 def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
