@@ -42,6 +42,7 @@ import numpy as np
 from scipy import ndimage
 
 from bonecap.model import Mesh
+from bonecap.parallel import fork_map
 
 __all__ = ["mesh_from_slices", "meshes_from_labels", "surface_distance"]
 
@@ -235,10 +236,9 @@ def mesh_from_slices(pieces: Sequence[tuple[np.ndarray, np.ndarray]], *, voxel_m
     hi += 2 * h
     shape = np.ceil((hi - lo) / h).astype(int) + 1
 
-    field = np.full(tuple(shape), clip_mm, dtype=np.float32)
-    for (mask, A), sp in zip(pieces, spacings):
-        if not mask.any():
-            continue
+    def resampled(piece):
+        """One piece's signed distance on its block of the grid: (block start, block end, values)."""
+        (mask, A), sp = piece
         # Crop the piece to its inside voxels and one empty slice / pixel ring around them: everything
         # outside that box is outside the bone, so distances in the crop are exact.
         nz = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != d))) for d in range(3)]
@@ -257,6 +257,14 @@ def mesh_from_slices(pieces: Sequence[tuple[np.ndarray, np.ndarray]], *, voxel_m
         offset = inv[:3, :3] @ (R @ (lo + h * g0)) + inv[:3, 3] - origin_idx
         vals = ndimage.affine_transform(sd, M, offset=offset, output_shape=tuple(g1 - g0), order=1,
                                         mode="constant", cval=clip_mm, output=np.float32)
+        return g0, g1, vals
+
+    field = np.full(tuple(shape), clip_mm, dtype=np.float32)
+    todo = [(pc, sp) for pc, sp in zip(pieces, spacings) if pc[0].any()]
+    # big pieces (whole-body stations) in worker processes: the in-plane EDTs dominate, the blocks on
+    # the (coarser) grid are small to send back
+    big = len(todo) > 1 and sum(pc[0].size for pc, _ in todo) > 2e7
+    for g0, g1, vals in (fork_map(resampled, todo) if big else map(resampled, todo)):
         sub = field[g0[0]:g1[0], g0[1]:g1[1], g0[2]:g1[2]]
         np.minimum(sub, vals, out=sub)
 
