@@ -766,15 +766,16 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
     report: dict[str, Any] = {}
     # capsules
     try:
-        from bonecap.segmentation.capsules import find_capsules, match_capsules
+        from bonecap.segmentation.capsules import find_capsules
     except ImportError:  # pragma: no cover - the module ships with bonecap
         find_capsules = None
     capsule_names: dict[str, np.ndarray] = {}
     if find_capsules is not None:
         found = fork_map(lambda v: find_capsules(v)[0], vols)
         centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
-        if len(centres):
-            capsule_names = match_capsules(centres, placed, max_distance_mm=25.0)
+        # a capsule in the overlap of two stations is found in both: one capsule
+        centres = _merge_close(centres, 4.0)
+        capsule_names = name_capsules(centres, placed)
         report["capsules_found"] = int(len(centres))
         report["capsules_matched"] = sorted(capsule_names)
         if capsule_names and subject.skin is not None:
@@ -814,6 +815,54 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
                                           if np.isfinite(poses[i]).all()}}
     report["markers_bound"] = len(subject.markers)
     return report
+
+
+def name_capsules(centres: np.ndarray, placed: dict[str, np.ndarray], near_mm: float = 25.0,
+                  far_mm: float = 45.0) -> dict[str, np.ndarray]:
+    """Which found capsule marks which marker: two one-to-one passes, near first.
+
+    The first pass (:func:`bonecap.segmentation.capsules.match_capsules`, within
+    ``near_mm``) settles the markers placed close to their capsules; the markers
+    it left get a second pass within ``far_mm`` among the capsules it left
+    (a heel, C7 or the clavicle were placed 25-32 mm from their capsules on the
+    phantom). Settling the close pairs first keeps the wider reach from taking
+    a capsule away from its own marker.
+
+    Parameters
+    ----------
+    centres : ndarray (N, 3)
+        Capsule centres (LPS mm), duplicates from station overlaps merged.
+    placed : dict of str -> ndarray (3,)
+        Each marker's expected position (LPS mm), e.g. on the personal skin.
+
+    Returns
+    -------
+    dict of str -> ndarray (3,)
+        Marker name -> its capsule's centre.
+    """
+    from bonecap.segmentation.capsules import match_capsules
+
+    centres = np.asarray(centres, float).reshape(-1, 3)
+    if not len(centres) or not placed:
+        return {}
+    named = match_capsules(centres, placed, max_distance_mm=near_mm)
+    used = {tuple(c) for c in named.values()}
+    rest_c = np.array([c for c in centres if tuple(c) not in used]).reshape(-1, 3)
+    rest_m = {n: p for n, p in placed.items() if n not in named}
+    if len(rest_c) and rest_m:
+        named.update(match_capsules(rest_c, rest_m, max_distance_mm=far_mm))
+    return named
+
+
+def _merge_close(points: np.ndarray, tol_mm: float) -> np.ndarray:
+    """Points closer than ``tol_mm`` to each other merged into their mean (single linkage)."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    points = np.asarray(points, float).reshape(-1, 3)
+    if len(points) < 2:
+        return points
+    groups = fcluster(linkage(points, method="single"), t=tol_mm, criterion="distance")
+    return np.array([points[groups == g].mean(axis=0) for g in np.unique(groups)])
 
 
 def capsules_to_markers(capsules: dict[str, np.ndarray], skin: Mesh, *, capsule_radius_mm: float = 4.0,

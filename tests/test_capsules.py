@@ -230,3 +230,19 @@ def test_capsules_to_markers_moves_out_along_the_skin_normal():
     # a 9 mm marker over a 4 mm capsule: 5 mm out
     out = capsules_to_markers({"M": 104.0 * d}, skin, capsule_radius_mm=4.0, marker_radius_mm=9.0)
     assert np.allclose(out["M"], 109.0 * d, atol=0.1)
+
+
+def test_name_capsules_settles_close_pairs_before_reaching_far():
+    """A marker placed 35 mm from its capsule gets it in the wide second pass, after its neighbour (10 mm
+    from its own capsule, 30 mm from the far marker's) was settled in the first."""
+    from bonecap.build_mri import _merge_close, name_capsules
+
+    caps = np.array([[0.0, 0, 0], [40.0, 0, 0], [200.0, 0, 0]])
+    placed = {"NEAR": np.array([10.0, 0, 0]), "FAR": np.array([40.0, 35.0, 0]), "NONE": np.array([500.0, 0, 0])}
+    named = name_capsules(caps, placed)
+    assert np.allclose(named["NEAR"], caps[0]) and np.allclose(named["FAR"], caps[1]) and "NONE" not in named
+    # one pass at the near reach alone would leave FAR without its capsule
+    assert "FAR" not in name_capsules(caps, placed, far_mm=25.0)
+    # a capsule in two stations' overlap, found twice 1 mm apart, is one capsule
+    merged = _merge_close(np.array([[0.0, 0, 0], [1.0, 0, 0], [50.0, 0, 0]]), 4.0)
+    assert len(merged) == 2 and np.allclose(sorted(merged[:, 0]), [0.5, 50.0])
