@@ -43,9 +43,14 @@ def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.n
     plt = _plt()
     K = image.shape[2]
     ks = np.unique(np.linspace(0, K - 1, min(n_slices, K)).round().astype(int))
-    cols = 4
+    # a panel shows image[:, :, k].T: i across, j (times the pixel aspect) down. Whole-body stations
+    # are ~3x wider than tall: fewer, wider panels keep them readable, and the figure's height follows
+    # the panels' (a height from the wrong axis left them a thin strip in a tall empty page)
+    wide = image.shape[0] / max(image.shape[1] * pixel_aspect, 1e-9)
+    cols = 2 if wide > 2.0 else 4
     rows = int(np.ceil(len(ks) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(cols * 3.2, rows * 3.2 * image.shape[0] / max(image.shape[1], 1)))
+    panel_w = 3.2 * float(np.clip(wide, 1.0, 2.5))
+    fig, axes = plt.subplots(rows, cols, figsize=(cols * panel_w, rows * (panel_w / wide + 0.3)))
     axes = np.atleast_1d(axes).ravel()
     cmap = plt.get_cmap("tab20")
     vmax = float(np.percentile(image, 99.5)) or 1.0

@@ -1,0 +1,26 @@
+"""QC pictures: the contour mosaic's layout follows the slices' shape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bonecap.qc import contour_mosaic
+
+
+@pytest.mark.parametrize("shape, max_ratio", [((594, 182, 20), 1.3), ((256, 256, 24), 1.0)])
+def test_mosaic_panels_fill_the_page(tmp_path, shape, max_ratio):
+    """A whole-body station is ~3x wider than tall: the page must not be a tall sheet with a thin strip
+    of panels (its height once came from the wrong image axis); a square knee slice gives a 4 x 3 grid."""
+    from PIL import Image
+
+    img = np.random.default_rng(0).random(shape).astype(np.float32)
+    lab = np.zeros(shape, np.int32)
+    lab[shape[0] // 3: shape[0] // 2, shape[1] // 3: shape[1] // 2, :] = 1
+    p = contour_mosaic(tmp_path / "m.png", img, lab, None, title="t")
+    w, h = Image.open(p).size
+    assert h / w <= max_ratio
+    # the panels take most of the page: the labelled square's contour colour covers some pixels
+    px = np.asarray(Image.open(p).convert("RGB"), float)
+    blue = (px[..., 2] > 150) & (px[..., 0] < 80)
+    assert blue.sum() > 200
