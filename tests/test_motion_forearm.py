@@ -131,6 +131,24 @@ def test_fit_recovers_a_known_model():
         fit_forearm_model(theta[:2], U[:2], radius[:2], W[:2], E[:2])
 
 
+def test_fit_unwraps_a_turn_beyond_half_a_turn():
+    """A radius turned 190 deg at the last pose: its screw angle reads -170 deg, the fit must not."""
+    truth = linear_model(radius_rotation=(0.0, 1.08, 0.0), radius_wrist=(0, 0.0, -0.4),
+                         radius_elbow=(0, 0.0, 0.1), theta_range_deg=(0.0, 176.0))
+    rad, uln, lat, med = forearm_markers(0.0)
+    theta = np.array([0.0, 90.0, 176.0])                  # turns 0, 97.2, 190.1 deg
+    K = len(theta)
+    W = np.broadcast_to(np.stack([rad, uln]), (K, 2, 3)).copy()
+    E = np.broadcast_to(np.stack([lat, med]), (K, 2, 3)).copy()
+    R0 = np.eye(4)
+    R0[:3, 3] = [20, 5, 120]
+    U = np.tile(np.eye(4), (K, 1, 1))
+    radius = forearm_bone_poses(truth, theta, U, np.broadcast_to(R0, (K, 4, 4)), W, E)["radius"]
+    fitted = fit_forearm_model(theta, U, radius, W, E)
+    assert np.allclose(fitted.rotation_deg("radius", theta), [0.0, 97.2, 190.08], atol=1e-6)
+    assert np.allclose(fitted.radius_rotation, truth.radius_rotation, atol=1e-8)
+
+
 # --------------------------------------------------------------------------- phantom
 
 

@@ -437,6 +437,14 @@ def fit_forearm_model(theta_deg, ulna_to_world, radius_to_world, wrist_markers, 
         ref = _unit(prox) if side == "r" else -_unit(prox)
         f = np.where(np.sum(a * ref, axis=1) < 0, -ang, ang)
         a = np.where(np.sum(a * ref, axis=1)[:, None] < 0, -a, a)
+        # A screw angle is read in (-180, 180]: a radius turned 190 deg at the last pose reads -170 deg
+        # and the quadratic through it dives (a phantom's radius was then 30 deg off at 90 deg of twist).
+        # Each pose after the first moving one takes the turn, of those 360 deg apart, nearest the
+        # previous pose's turn extrapolated through theta = 0 (the bones turn about in step with theta).
+        for k in range(2, K):
+            if abs(th[k - 1]) > 1e-9:
+                guess = f[k - 1] * th[k] / th[k - 1]
+                f[k] += 360.0 * np.round((guess - f[k]) / 360.0)
         use = np.abs(ang) >= min_rotation_deg
         use[0] = False
         uw, ue = np.zeros(K), np.zeros(K)
