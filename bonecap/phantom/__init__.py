@@ -61,6 +61,31 @@ def _to_lps(mesh: Mesh) -> Mesh:
     return mesh.transformed(MODEL_TO_LPS, "lps")
 
 
+def _may_reach_forearm_stack(mesh: Mesh, bone_to_model: np.ndarray, elbow: np.ndarray, wrist: np.ndarray,
+                             cfg: dict[str, Any]) -> bool:
+    """Whether a bone (its bounding sphere, model frame) can reach the forearm stack's field of view.
+
+    :func:`~bonecap.phantom.mri.plan_forearm_stack` covers skin within
+    ``max_radius_mm`` (80) of the elbow-wrist axis plus a margin (<= 20 mm):
+    an in-plane box whose corners lie <= 100 * sqrt(2) mm from the axis, and
+    slices from ``extend_mm`` (10) before the elbow to as far past the wrist,
+    each a slice thickness deep. A bone whose bounding sphere stays outside a
+    cylinder of 160 mm radius around that stretch (plus 40 mm) cannot show.
+    """
+    v = mesh.vertices
+    lo, hi = v.min(0), v.max(0)
+    c_bone = 0.5 * (lo + hi)
+    r = 0.5 * float(np.linalg.norm(hi - lo))
+    c = bone_to_model[:3, :3] @ c_bone + bone_to_model[:3, 3]
+    d = np.asarray(wrist, float) - np.asarray(elbow, float)
+    L = float(np.linalg.norm(d))
+    n = d / L
+    s = float((c - elbow) @ n)
+    radial = float(np.linalg.norm((c - elbow) - s * n))
+    reach = 40.0 + 2 * float(cfg["forearm_pitch_mm"])
+    return radial - r <= 160.0 and s + r >= -reach and s - r <= L + reach
+
+
 def _twist_name(theta: float) -> str:
     return f"{theta:g}"
 
@@ -218,7 +243,12 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         for name, bone in skeleton.bones.items():
             if bone.mesh is None:
                 continue
-            T = MODEL_TO_LPS @ posed.bone_to_world.get(name, bone.bone_to_world)
+            T_model = posed.bone_to_world.get(name, bone.bone_to_world)
+            # only the bones that can reach a forearm stack: the whole skeleton posed three times
+            # was ~100 MB of copies that the renderer sectioned only to find nothing in the stack
+            if not _may_reach_forearm_stack(bone.mesh, T_model, posed.elbow, posed.wrist, cfg):
+                continue
+            T = MODEL_TO_LPS @ T_model
             f_layers.append((bone.mesh.transformed(T, "lps"), "cortex"))
             if bone.inner_mesh is not None:
                 f_layers.append((bone.inner_mesh.transformed(T, "lps"), "marrow"))

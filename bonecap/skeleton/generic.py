@@ -1737,6 +1737,22 @@ _MESH_CACHE: dict[str, tuple] = {}
 _MESH_CACHE_MAX = 400
 
 
+def forget_meshes(keys) -> None:
+    """Drop these keys from the in-process mesh cache (unknown keys are ignored).
+
+    A caller that builds a one-off skeleton (a phantom subject: every seed's
+    bones differ) frees the cached copies of its meshes, ~25 MB at full
+    resolution, instead of carrying them to the end of the process.
+    """
+    for k in list(keys):
+        _MESH_CACHE.pop(k, None)
+
+
+def mesh_cache_keys() -> set[str]:
+    """The keys now in the in-process mesh cache (see :func:`forget_meshes`)."""
+    return set(_MESH_CACHE)
+
+
 def _cache_put(key, value):
     if len(_MESH_CACHE) >= _MESH_CACHE_MAX:
         _MESH_CACHE.pop(next(iter(_MESH_CACHE)))
