@@ -205,3 +205,41 @@ def test_slice_seeds_point_on_a_slice_crosses_it():
     line = np.array([[5.0, 5.0, 40.0], [6.0, 5.0, 12 * 4.0 + 0.03], [8.0, 5.0, 80.0]])
     crossing = slice_seeds(v, line, 0.0)
     assert len(crossing[12]) == 1 and np.allclose(crossing[12][0], [6.0, 5.0], atol=0.01)
+
+
+def test_a_long_bone_stops_where_its_sections_stop_continuing_it():
+    """A radius-like tube ends at slice 12; a humerus-like bone sits beyond it, 6 px off its axis.
+
+    The seed margin (20 mm past the polyline's end) searches slices 13-16 too: the big marrow
+    there is the neighbour's and must not be labelled as the thin bone (it was, before the
+    continuity check: 3.5 times the thin bone's section on the phantom's elbow).
+    """
+    from bonecap.segmentation.bones import segment_bones
+
+    rng = np.random.default_rng(3)
+    n, K = 120, 20
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    data = np.full((n, n, K), 300.0)
+    body = np.hypot(ii - 60, jj - 60) < 55
+    data[~body] = 0.0
+    thin = np.hypot(ii - 60, jj - 60)
+    big = np.hypot(ii - 60, jj - 66)
+    for k in range(K):
+        sl = data[:, :, k]
+        if k <= 12:                     # the thin bone: radius 7 px, cortex 3 px
+            sl[thin < 7] = 80.0
+            sl[thin < 4] = 900.0
+        if k >= 14:                     # the neighbour: radius 16 px, cortex 3 px, its end a slice apart
+            sl[big < 16] = 80.0
+            sl[big < 13] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 4.0, 1.0]))
+    seeds = {"radius_r": np.array([[60.0, 60.0, 0.0], [60.0, 60.0, 12 * 4.0]])}
+    labels, ids = segment_bones(vol, seeds, body_mask=np.repeat(body[:, :, None], K, axis=2), progress=False,
+                                margin_mm=20.0)
+    lab = labels == ids["radius_r"]
+    area = lab.sum(axis=(0, 1))
+    # the thin bone is found on its slices (pi 7^2 ~ 154 px) ...
+    assert np.all(np.abs(area[:13] - np.pi * 49) < 40)
+    # ... and nothing of the neighbour is given to it
+    assert area[13:].sum() == 0

@@ -508,5 +508,58 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         masks = _resolve_overlaps(masks, here)
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
-    _split_joints(labels, ids, seeds, volume, [n for n in names if rule_of[n] == "cortical"], joint_zone_mm)
+    long_bones = [n for n in names if rule_of[n] == "cortical"]
+    _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm)
+    _trim_beyond_ends(labels, ids, {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}, pixel_mm)
     return labels, ids
+
+
+def _trim_beyond_ends(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
+                      pixel_mm: float, *, grow: float = 2.0, min_overlap: float = 0.5,
+                      reach_mm: float = 3.0) -> None:
+    """Drop a long bone's sections beyond its polyline's ends that do not continue it (in place).
+
+    Past its end joint centre (hip, shoulder, elbow, wrist, knee, ankle) a long
+    bone only tapers to its end: its head, condyles or styloid. The slices
+    searched there by the seed margin may instead find the neighbouring bone's
+    marrow (the humeral capitellum above the radial head, the carpals past the
+    wrist, the acetabulum above the femoral head). Walking outwards from the
+    last slice the polyline crosses, a section is kept only while it lies on
+    the previous one (at least ``min_overlap`` of it within ``reach_mm`` of it)
+    and is no larger than ``grow`` times it (the femoral condyles still widen
+    ~20 % past the knee's centre; the marrow of a neighbour reached instead is
+    another bone's whole section, seen 3.5 times the radius's). A section that
+    is not is dropped (re-growing it from the marrow lying on the previous
+    section was tried: at the top of the femoral head, where partial volume
+    leaves the marrow muscle-grey, that marrow is the acetabulum's); the next
+    slice is compared with the last kept section, so one bad slice does not
+    cut off the head beyond it. A bone
+    whose polyline crosses no slice of this stack (only its end reaches in)
+    has nothing to continue from and is left as it is.
+    """
+    from skimage.morphology import disk
+
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    K = labels.shape[2]
+    for name, cr in crossed.items():
+        ks = np.flatnonzero(cr)
+        if ks.size == 0:
+            continue
+        lid = ids[name]
+        for start, step in ((int(ks.max()), 1), (int(ks.min()), -1)):
+            prev = labels[:, :, start] == lid
+            k = start + step
+            while 0 <= k < K and not cr[k]:
+                cur = labels[:, :, k] == lid
+                if cur.any():
+                    if prev.any() and _continues(cur, prev, fp, grow, min_overlap):
+                        prev = cur
+                    else:
+                        labels[:, :, k][cur] = 0
+                k += step
+
+
+def _continues(cur: np.ndarray, prev: np.ndarray, fp: np.ndarray, grow: float, min_overlap: float) -> bool:
+    n_cur = int(cur.sum())
+    return (n_cur <= grow * int(prev.sum()) + 4
+            and int((cur & ndimage.binary_dilation(prev, fp)).sum()) >= min_overlap * n_cur)
