@@ -243,3 +243,44 @@ def test_a_long_bone_stops_where_its_sections_stop_continuing_it():
     assert np.all(np.abs(area[:13] - np.pi * 49) < 40)
     # ... and nothing of the neighbour is given to it
     assert area[13:].sum() == 0
+
+
+def test_an_elbow_keeps_both_bones_in_the_slices_they_share():
+    """Two long bones share a joint point, but lie side by side in the slices around it.
+
+    An elbow-like joint: the upper bone (section radius 12 px) ends at slice 6, the lower one
+    (radius 6 px, 22 px behind it) begins at slice 11 -- slices 7-10 hold both, as the olecranon
+    lies behind the trochlea. Both polylines end at the joint point inside the upper bone. A
+    whole-slice split at the joint space gives each shared slice to one bone; following each
+    bone from its shaft keeps both.
+    """
+    from bonecap.segmentation.bones import segment_bones
+
+    rng = np.random.default_rng(5)
+    n, K = 140, 18
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    data = np.full((n, n, K), 300.0)
+    body = np.hypot(ii - 70, jj - 70) < 62
+    data[~body] = 0.0
+    up = np.hypot(ii - 70, jj - 60)
+    low = np.hypot(ii - 70, jj - 82)
+    for k in range(K):
+        sl = data[:, :, k]
+        if k >= 7:                          # the upper bone: slices 7..17
+            sl[up < 12] = 80.0
+            sl[up < 9] = 900.0
+        if k <= 10:                         # the lower bone: slices 0..10
+            sl[low < 6] = 80.0
+            sl[low < 3.5] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 5.0, 1.0]))
+    joint = [70.0, 62.0, 9 * 5.0]
+    seeds = {"humerus_r": np.array([[70.0, 60.0, 17 * 5.0], joint]),
+             "ulna_r": np.array([joint, [70.0, 82.0, 0.0]])}
+    labels, ids = segment_bones(vol, seeds, body_mask=np.repeat(body[:, :, None], K, axis=2), progress=False)
+    for k in range(7, 11):                  # the shared slices: each bone on its own section
+        h = labels[:, :, k] == ids["humerus_r"]
+        u = labels[:, :, k] == ids["ulna_r"]
+        assert abs(h.sum() - np.pi * 144) < 60, (k, h.sum())
+        assert abs(u.sum() - np.pi * 36) < 30, (k, u.sum())
+        assert h[70, 60] and u[70, 82]

@@ -26,6 +26,7 @@ density-threshold rules; seeds per bone).
 from __future__ import annotations
 
 import re
+from functools import partial
 from typing import Mapping
 
 import numpy as np
@@ -279,7 +280,7 @@ _DENSITY_KEYS = {"fraction", "min_neighbours", "exclude_skin_band_mm"}
 
 
 def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, np.ndarray], volume: Volume,
-                  long_bones: list[str], zone_mm: float) -> None:
+                  long_bones: list[str], zone_mm: float, track=None) -> None:
     """Give each long bone its own side of a joint it shares with another (in place).
 
     Two long bones whose polylines share an end point (femur and tibia at the knee, humerus
@@ -289,6 +290,12 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
     cross-section within ``zone_mm`` (at most 15 % of the shorter bone's polyline) of the
     shared point (:func:`_joint_space`): every slice beyond it on a bone's side is given to
     that bone.
+
+    Where both bones lie side by side in the joint's slices (the elbow: the olecranon behind
+    the trochlea, both beside the capitulum), one slice cannot go to one bone. With ``track``
+    (:func:`_track_joint`'s arguments bound) each bone is first followed from its own shaft
+    through the zone, marrow region by marrow region; the regions so claimed keep their bone
+    on either side of the joint space, and only what neither follows is split at it.
     """
     pts = {n: volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3)) for n in long_bones}
     dz = float(volume.spacing[2])
@@ -319,11 +326,114 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
             both = (labels[:, :, zone] == la) | (labels[:, :, zone] == lb)
             area = both.sum(axis=(0, 1)).astype(float)
             ks = int(zone[_joint_space(area)])
+            claimed = {} if track is None else track(labels, (a, b), zone, (side_a, side_b))
             for z, k in enumerate(zone):
+                if k in claimed:
+                    sec = claimed[k]
+                    rest = both[:, :, z] & ~sec[a] & ~sec[b]
+                    if k != ks:
+                        owner = a if np.sign(k - ks) == side_a else b
+                        # what the bone followed here does not continue is not its (the patella's marrow
+                        # that the tibia's seed took above the knee); else the joint-space split
+                        labels[:, :, k][rest] = 0 if sec[owner].any() else ids[owner]
+                    for n in (a, b):
+                        labels[:, :, k][sec[n]] = ids[n]
+                    continue
                 if k == ks:
                     continue
                 owner = la if np.sign(k - ks) == side_a else lb
                 labels[:, :, k][both[:, :, z]] = owner
+
+
+def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float, opts: Mapping
+                    ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A slice's marrow candidates as :func:`_cortical_slice` finds them: (labels, kept ids, muscle level)."""
+    m_slice = cortical.muscle_level(med, inner)
+    if not np.isfinite(m_slice) or m_slice <= 0:
+        return np.zeros(med.shape, np.int32), np.zeros(0, int), m_slice
+    cand = body & (med > opts.get("marrow_over_muscle", 1.2) * m_slice)
+    lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
+    area = np.bincount(lab.ravel(), minlength=n + 1)[1:] * pixel_mm ** 2
+    keep = np.flatnonzero(area >= opts.get("min_marrow_mm2", 6.0)) + 1
+    return lab, keep, m_slice
+
+
+def _track_joint(labels: np.ndarray, pair: tuple[str, str], zone: np.ndarray, sides: tuple[float, float], *,
+                 ids: Mapping[str, int], img: np.ndarray, med: np.ndarray, body: np.ndarray, inner: np.ndarray,
+                 pixel_mm: float, opts: Mapping[str, Mapping], reach_mm: float = 3.0, grow: float = 2.5,
+                 min_overlap: float = 0.5) -> dict[int, dict[str, np.ndarray]]:
+    """Follow two long bones from their shafts through a joint's slices, marrow region by region.
+
+    Each bone starts from its section on the zone's slice farthest on its own side (its
+    shaft, where the seed assignment is reliable) and steps towards the other side: on
+    each slice the marrow regions (:func:`_marrow_regions`) lying on its previous section
+    (at least ``min_overlap`` of a region within ``reach_mm`` of it) are its, their
+    cortical contours its new section (kept while no larger than ``grow`` times the
+    previous); it stops where no region continues it (its end). A region both bones
+    reach goes to the one it lies on the more. Two marrow regions beside each other in
+    one slice -- the elbow's trochlea in the olecranon's notch -- thus keep their own bones.
+
+    Returns
+    -------
+    dict slice -> {bone: section mask}
+        The zone's slices where either bone was followed.
+    """
+    from skimage.morphology import disk
+
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    regions: dict[int, tuple] = {}
+
+    def regions_of(k):
+        if k not in regions:
+            regions[k] = _marrow_regions(med[:, :, k], body[:, :, k], inner[:, :, k], pixel_mm, opts[pair[0]])
+        return regions[k]
+
+    follow: dict[str, dict[int, dict[int, float]]] = {}
+    start: dict[str, tuple[int, np.ndarray]] = {}
+    for n, side in zip(pair, sides):
+        order = sorted(zone, key=lambda k: -side * k)         # from this bone's shaft towards the joint
+        prev = labels[:, :, order[0]] == ids[n]
+        start[n] = (int(order[0]), prev)                       # its own section there, as assigned
+        got: dict[int, dict[int, float]] = {}
+        for k in order[1:]:
+            if not prev.any():
+                break
+            lab, keep, _ = regions_of(k)
+            if keep.size == 0:
+                break
+            near = ndimage.binary_dilation(prev, fp)
+            area = np.asarray(ndimage.sum(np.ones_like(near), lab, keep))
+            on = np.asarray(ndimage.sum(near, lab, keep)) / np.maximum(area, 1)
+            mine = on >= min_overlap
+            if not mine.any():
+                break
+            got[k] = {int(r): float(f) for r, f in zip(keep[mine], on[mine])}
+            prev = np.isin(lab, keep[mine])
+        follow[n] = got
+    out: dict[int, dict[str, np.ndarray]] = {}
+    a, b = pair
+    for k in sorted(set(follow[a]) | set(follow[b]) | {start[a][0], start[b][0]}):
+        lab, _, m_slice = regions_of(k)
+        fa, fb = follow[a].get(k, {}), follow[b].get(k, {})
+        own = {a: [r for r, f in fa.items() if f >= fb.get(r, -1.0)],
+               b: [r for r, f in fb.items() if f > fa.get(r, -1.0)]}
+        sec = {}
+        for n in pair:
+            mask = np.zeros(lab.shape, bool)
+            for r in own[n]:
+                marrow = density.fill_holes(lab == r)
+                mi, mj = np.nonzero(marrow)
+                box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), lab.shape, 65.0 / pixel_mm)
+                m = cortical.muscle_level(med[:, :, k][box], inner[:, :, k][box])
+                mask |= cortical.cortical_contour(img[:, :, k], marrow, pixel_mm, m if np.isfinite(m) else m_slice,
+                                                  body_mask=body[:, :, k],
+                                                  **{o: v for o, v in opts[n].items() if o in _CONTOUR_KEYS})
+            if k == start[n][0] and not mask.any():
+                mask = start[n][1].copy()
+            sec[n] = mask
+        sec[a] &= ~sec[b]
+        out[k] = sec
+    return out
 
 
 def _joint_space(area: np.ndarray) -> int:
@@ -509,7 +619,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
     long_bones = [n for n in names if rule_of[n] == "cortical"]
-    _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm)
+    track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
+                    opts=opts)
+    _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
     _trim_beyond_ends(labels, ids, {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}, pixel_mm)
     return labels, ids
 
