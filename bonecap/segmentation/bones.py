@@ -360,18 +360,20 @@ def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_
 
 def _track_joint(labels: np.ndarray, pair: tuple[str, str], zone: np.ndarray, sides: tuple[float, float], *,
                  ids: Mapping[str, int], img: np.ndarray, med: np.ndarray, body: np.ndarray, inner: np.ndarray,
-                 pixel_mm: float, opts: Mapping[str, Mapping], reach_mm: float = 3.0, grow: float = 2.5,
-                 min_overlap: float = 0.5) -> dict[int, dict[str, np.ndarray]]:
+                 pixel_mm: float, opts: Mapping[str, Mapping], crossed: Mapping[str, list[bool]] | None = None,
+                 reach_mm: float = 3.0, min_overlap: float = 0.5) -> dict[int, dict[str, np.ndarray]]:
     """Follow two long bones from their shafts through a joint's slices, marrow region by region.
 
     Each bone starts from its section on the zone's slice farthest on its own side (its
     shaft, where the seed assignment is reliable) and steps towards the other side: on
-    each slice the marrow regions (:func:`_marrow_regions`) lying on its previous section
-    (at least ``min_overlap`` of a region within ``reach_mm`` of it) are its, their
-    cortical contours its new section (kept while no larger than ``grow`` times the
-    previous); it stops where no region continues it (its end). A region both bones
-    reach goes to the one it lies on the more. Two marrow regions beside each other in
-    one slice -- the elbow's trochlea in the olecranon's notch -- thus keep their own bones.
+    each slice the marrow regions (:func:`_marrow_regions`) lying on its previous ones (at
+    least ``min_overlap`` of a region within ``reach_mm`` of them) are its; it stops where
+    no region continues it (its end). The sections are the claimed regions' cortical
+    contours. A bone whose polyline does not cross its starting slice (``crossed``) is not
+    followed: its section there came from the seed margin and may be the other bone's. A
+    region both bones reach goes to the one it lies on the more. Two marrow regions beside
+    each other in one slice -- the elbow's trochlea in the olecranon's notch -- thus keep
+    their own bones.
 
     Returns
     -------
@@ -394,6 +396,9 @@ def _track_joint(labels: np.ndarray, pair: tuple[str, str], zone: np.ndarray, si
         order = sorted(zone, key=lambda k: -side * k)         # from this bone's shaft towards the joint
         prev = labels[:, :, order[0]] == ids[n]
         start[n] = (int(order[0]), prev)                       # its own section there, as assigned
+        if crossed is not None and not crossed[n][int(order[0])]:
+            follow[n] = {}
+            continue
         got: dict[int, dict[int, float]] = {}
         for k in order[1:]:
             if not prev.any():
@@ -619,10 +624,11 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
     long_bones = [n for n in names if rule_of[n] == "cortical"]
+    crossed = {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}
     track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
-                    opts=opts)
+                    opts=opts, crossed=crossed)
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
-    _trim_beyond_ends(labels, ids, {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}, pixel_mm)
+    _trim_beyond_ends(labels, ids, crossed, pixel_mm)
     return labels, ids
 
 
