@@ -267,8 +267,8 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                ) -> dict[str, np.ndarray]:
     """Seed polylines (LPS mm) of the bones to segment, from the aligned template.
 
-    A long bone's seed is the line between its proximal and distal joint
-    centres (its marrow lies along it); another bone's is its joint centres
+    A long bone's seed is the line from its proximal to its distal joint
+    centre (its marrow lies along it); another bone's is its joint centres
     and its mesh centroid, ordered along z.
     """
     out = {}
@@ -286,7 +286,8 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         if not pts:
             continue
         p = np.asarray(pts) @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
-        out[name] = p[np.argsort(-p[:, 2])]
+        # a long bone's stays proximal -> distal (segment_bones: past the proximal end lies its head)
+        out[name] = p if name.startswith(_LONG) else p[np.argsort(-p[:, 2])]
     return out
 
 

@@ -165,7 +165,8 @@ def _resolve_overlaps(masks: dict[str, np.ndarray], seeds: dict[str, np.ndarray]
 
 
 def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray], extension: dict[str, np.ndarray],
-                    opts: dict, others: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                    opts: dict, others: dict[str, np.ndarray] | None = None,
+                    holds: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """All long bones of one slice: marrow regions assigned to seeds jointly, then each contour.
 
     The marrow candidates (:func:`~bonecap.segmentation.cortical.find_marrow`'s criteria, with one
@@ -176,7 +177,11 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
     slice (a joint: the tibia's seed above the knee) yields to a bone that crosses it.
     The seeds of the slice's other (density-rule) bones take part in the assignment too,
     with a handicap so that a tie goes to the long bone: a region assigned to one of them
-    (the patella's marrow, a seed ~15 mm off, next to the femur's) is left to its rule.
+    (the patella's marrow, a seed ~15 mm off, next to the femur's) is left to its rule. A
+    region holding a long bone's seed that ``holds`` (default: the crossing ones) is never a
+    density bone's: past a long bone's proximal end the joint centre lies in its head (the
+    hip's seed passes through the hip's centre too, and took the femoral head), past its
+    distal end in the next bone (the ankle's in the talus).
     """
     m_slice = cortical.muscle_level(med, inner)
     out = {name: np.zeros(img.shape, bool) for name in bones}
@@ -205,12 +210,15 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
             c = np.where(d <= radius, d + (radius if ext else 0.0), np.inf)
             rows.append(name)
             cost.append(c)
-    # a region holding a long bone's own seed (its polyline crosses this slice inside it) is that
-    # bone's: a density-rule seed nearby may not take it (the assignment would push the long bone onto
-    # a far region to make room -- seen on a sagittal knee, the patella's seed taking the femur's condyle)
+    # a region holding a long bone's own seed (its polyline crosses this slice inside it, or its proximal
+    # end carried past it: the femoral head around the hip's centre) is that bone's: a density-rule seed
+    # nearby may not take it (the assignment would push the long bone onto a far region to make room --
+    # seen on a sagittal knee, the patella's seed taking the femur's condyle; the hip's seed, through
+    # the hip's centre too, taking the femoral head)
     held = np.zeros(ids.size, bool)
     for name, pts in bones.items():
-        for p in np.asarray(pts)[~extension[name]]:
+        hold = ~extension[name] if holds is None else holds[name]
+        for p in np.asarray(pts)[hold]:
             i, j = int(round(p[0])), int(round(p[1]))
             if 0 <= i < lab.shape[0] and 0 <= j < lab.shape[1]:
                 held |= ids == lab[i, j]
@@ -491,7 +499,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         Axial stack: ``data[i, j, k]`` with ``k`` the slice axis, ``affine``
         voxel -> LPS mm. Square-ish pixels (the mean in-plane spacing is used).
     seeds : dict bone name -> array (N, 3)
-        Seed polyline per bone, LPS world mm (see :func:`slice_seeds`).
+        Seed polyline per bone, LPS world mm (see :func:`slice_seeds`); a long
+        bone's from its proximal to its distal end (its joint centres, in that
+        order: past the first one the region around it is its head).
     body_mask : ndarray of bool, optional
         The body (:func:`bonecap.segmentation.skin.segment_body`, computed
         when not given).
@@ -559,6 +569,12 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     per_slice = {n: slice_seeds(volume, seeds[n], margin_mm) for n in names}
     # seeds only there because of the margin (beyond the polyline's ends) yield to crossings
     crossing = {n: slice_seeds(volume, seeds[n], 0.0) for n in names}
+    # slices past a polyline's first point (a long bone's proximal end, its seeds run proximal to distal)
+    before_start = {}
+    for n in names:
+        kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
+        ks = np.arange(data.shape[2])
+        before_start[n] = (ks < kk[0]) if kk[0] <= kk[-1] else (ks > kk[0])
     opts = {}
     for n in names:
         o = dict(options.get(n, {}))
@@ -592,9 +608,10 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         long_here = {n: s for n, s in here.items() if rule_of[n] == "cortical"}
         if long_here:
             ext = {n: np.full(len(s), len(crossing[n][k]) == 0) for n, s in long_here.items()}
+            holds = {n: np.full(len(s), len(crossing[n][k]) > 0 or before_start[n][k]) for n, s in long_here.items()}
             others = {n: s for n, s in here.items() if rule_of[n] == "density"}
             masks.update(_cortical_slice(img, smooth[:, :, k], body, interior[:, :, k], pixel_mm, long_here, ext,
-                                         opts, others))
+                                         opts, others, holds))
         taken = np.zeros(img.shape, bool)
         for m in masks.values():
             taken |= m
@@ -633,51 +650,67 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
 
 
 def _trim_beyond_ends(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
-                      pixel_mm: float, *, grow: float = 2.0, min_overlap: float = 0.5,
-                      reach_mm: float = 3.0) -> None:
-    """Drop a long bone's sections beyond its polyline's ends that do not continue it (in place).
+                      pixel_mm: float, *, grow: float = 2.5, min_overlap: float = 0.5,
+                      reach_mm: float = 3.0, max_gap: int = 1) -> None:
+    """Keep a long bone's sections only while they continue it, from its shaft to its ends (in place).
 
-    Past its end joint centre (hip, shoulder, elbow, wrist, knee, ankle) a long
-    bone only tapers to its end: its head, condyles or styloid. The slices
-    searched there by the seed margin may instead find the neighbouring bone's
-    marrow (the humeral capitellum above the radial head, the carpals past the
-    wrist, the acetabulum above the femoral head). Walking outwards from the
-    last slice the polyline crosses, a section is kept only while it lies on
-    the previous one (at least ``min_overlap`` of it within ``reach_mm`` of it)
-    and is no larger than ``grow`` times it (the femoral condyles still widen
-    ~20 % past the knee's centre; the marrow of a neighbour reached instead is
-    another bone's whole section, seen 3.5 times the radius's). A section that
-    is not is dropped (re-growing it from the marrow lying on the previous
-    section was tried: at the top of the femoral head, where partial volume
-    leaves the marrow muscle-grey, that marrow is the acetabulum's); the next
-    slice is compared with the last kept section, so one bad slice does not
-    cut off the head beyond it. A bone
-    whose polyline crosses no slice of this stack (only its end reaches in)
-    has nothing to continue from and is left as it is.
+    A long bone's sections follow each other from slice to slice; towards its
+    ends (hip, shoulder, elbow, wrist, knee, ankle) the seed -- its polyline
+    there, or the seed margin beyond it -- may instead find the neighbouring
+    bone's marrow (the humeral capitellum above the radial head, the carpals
+    past the wrist, the acetabulum above the femoral head, the fibula and the
+    talus where the tibia's plafond is grey with partial volume). Walking
+    outwards from an anchor on the shaft (the slice the polyline crosses whose
+    section is the median in size), a section is kept only while it lies on the
+    last kept one or that one on it (at least ``min_overlap`` within ``reach_mm``;
+    :func:`_continues`) and is no larger than ``grow`` times it (the femoral condyles still widen ~20 %
+    past the knee's centre; a neighbour's marrow reached instead is often a
+    whole other bone's section, seen 3.5 times the radius's). A section that is
+    not is dropped; after more than ``max_gap`` slices in a row without a kept
+    section the bone has ended on that side and everything beyond is dropped
+    (the talus under the plafond lies on the tibia's last section, two slices
+    away). Re-growing a dropped section from the marrow lying on the previous
+    one was tried: at the top of the femoral head, where partial volume leaves
+    the marrow muscle-grey, that marrow is the acetabulum's. A bone whose
+    polyline crosses no slice of this stack (only its end reaches in) has
+    nothing to continue from and is left as it is.
     """
     from skimage.morphology import disk
 
     fp = disk(max(1, int(round(reach_mm / pixel_mm))))
     K = labels.shape[2]
     for name, cr in crossed.items():
-        ks = np.flatnonzero(cr)
+        lid = ids[name]
+        area = (labels == lid).sum(axis=(0, 1))
+        ks = np.flatnonzero(np.asarray(cr) & (area > 0))
         if ks.size == 0:
             continue
-        lid = ids[name]
-        for start, step in ((int(ks.max()), 1), (int(ks.min()), -1)):
-            prev = labels[:, :, start] == lid
-            k = start + step
-            while 0 <= k < K and not cr[k]:
+        anchor = int(ks[np.argmin(np.abs(area[ks] - np.median(area[ks])))])
+        for step in (1, -1):
+            prev = labels[:, :, anchor] == lid
+            gap = 0
+            k = anchor + step
+            while 0 <= k < K:
                 cur = labels[:, :, k] == lid
-                if cur.any():
-                    if prev.any() and _continues(cur, prev, fp, grow, min_overlap):
-                        prev = cur
-                    else:
+                if gap <= max_gap and cur.any() and _continues(cur, prev, fp, grow, min_overlap):
+                    prev = cur
+                    gap = 0
+                else:
+                    if cur.any():
                         labels[:, :, k][cur] = 0
+                    gap += 1
                 k += step
 
 
 def _continues(cur: np.ndarray, prev: np.ndarray, fp: np.ndarray, grow: float, min_overlap: float) -> bool:
-    n_cur = int(cur.sum())
-    return (n_cur <= grow * int(prev.sum()) + 4
-            and int((cur & ndimage.binary_dilation(prev, fp)).sum()) >= min_overlap * n_cur)
+    """``cur`` continues ``prev``: not more than ``grow`` times larger, and one lies on the other.
+
+    Either way round: where a bone flares (the distal radius, a few mm aside per slice) the
+    smaller previous section lies within the new one more than the new one on it.
+    """
+    n_cur, n_prev = int(cur.sum()), int(prev.sum())
+    if n_cur > grow * n_prev + 4:
+        return False
+    if int((cur & ndimage.binary_dilation(prev, fp)).sum()) >= min_overlap * n_cur:
+        return True
+    return int((prev & ndimage.binary_dilation(cur, fp)).sum()) >= min_overlap * n_prev
