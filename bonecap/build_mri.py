@@ -1094,7 +1094,7 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
     axis_joints = {ulna_n: ("elbow", "distal_radioulnar"), radius_n: ("proximal_radioulnar", "wrist")}
     seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in axis_joints[n]
                           if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
-    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
     Ts = {}
     for n, bone in ((ulna_n, U), (radius_n, Rb)):
         if n == radius_n:
@@ -1106,7 +1106,7 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
                                 Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U, body_mask=body)
             if turn is not None:
                 seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
-                lab, ids = segment_bones(v, seeds, body_mask=body, progress=False)
+                lab, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
                 report["radius_seed_turn_deg"] = float(
                     np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
         if n not in ids or not (lab == ids[n]).any():

@@ -480,7 +480,7 @@ def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
 def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask: np.ndarray | None = None,
                   rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
                   options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
-                  joint_zone_mm: float = 60.0) -> tuple[np.ndarray, dict[str, int]]:
+                  joint_zone_mm: float = 60.0, continuity: bool = True) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -522,6 +522,12 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     sigma_px : float
         In-plane Gaussian of the noise removal, pixels, applied once to the
         stack (see :func:`~bonecap.segmentation.density.density_candidates`).
+    continuity : bool
+        Keep only each long bone's longest chain of sections that continue
+        each other (:func:`_trim_beyond_ends`; default). Off for a stack that
+        is registered as a whole afterwards, where every section helps (the
+        forearm stacks: in a pronated forearm the ulna's chain breaks where its
+        seed took the radius).
     joint_zone_mm : float
         Two long bones whose polylines share an end point (a joint centre:
         femur and tibia at the knee) are split at the deepest valley of their summed
@@ -645,13 +651,14 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
                     opts=opts, crossed=crossed)
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
-    _trim_beyond_ends(labels, ids, crossed, pixel_mm)
+    if continuity:
+        _trim_beyond_ends(labels, ids, crossed, pixel_mm, slice_mm=float(volume.spacing[2]))
     return labels, ids
 
 
 def _trim_beyond_ends(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
                       pixel_mm: float, *, grow: float = 2.5, min_overlap: float = 0.5,
-                      reach_mm: float = 3.0, max_gap: int = 1) -> None:
+                      reach_mm: float = 3.0, max_gap_mm: float = 7.5, slice_mm: float = 5.0) -> None:
     """Keep a long bone's sections only while they continue it, from its shaft to its ends (in place).
 
     A long bone's sections follow each other from slice to slice; towards its
@@ -659,21 +666,25 @@ def _trim_beyond_ends(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappi
     there, or the seed margin beyond it -- may instead find the neighbouring
     bone's marrow (the humeral capitellum above the radial head, the carpals
     past the wrist, the acetabulum above the femoral head, the fibula and the
-    talus where the tibia's plafond is grey with partial volume). Walking
-    outwards from an anchor on the shaft (the slice the polyline crosses whose
-    section is the median in size), a section is kept only while it lies on the
-    last kept one or that one on it (at least ``min_overlap`` within ``reach_mm``;
-    :func:`_continues`) and is no larger than ``grow`` times it (the femoral condyles still widen ~20 %
-    past the knee's centre; a neighbour's marrow reached instead is often a
-    whole other bone's section, seen 3.5 times the radius's). A section that is
-    not is dropped; after more than ``max_gap`` slices in a row without a kept
-    section the bone has ended on that side and everything beyond is dropped
-    (the talus under the plafond lies on the tibia's last section, two slices
-    away). Re-growing a dropped section from the marrow lying on the previous
-    one was tried: at the top of the femoral head, where partial volume leaves
-    the marrow muscle-grey, that marrow is the acetabulum's. A bone whose
-    polyline crosses no slice of this stack (only its end reaches in) has
-    nothing to continue from and is left as it is.
+    talus where the tibia's plafond is grey with partial volume). A section
+    continues another when it lies on it or that one on it (at least
+    ``min_overlap`` within ``reach_mm``; :func:`_continues`) and is no larger
+    than ``grow`` times it (the femoral condyles still widen ~20 % past the
+    knee's centre; a neighbour's marrow reached instead is often a whole other
+    bone's section, seen 3.5 times the radius's). Walking outwards from the
+    shaft -- the longest run of sections each continuing the one before, among
+    those holding a slice the polyline crosses -- a section that does not
+    continue the last kept one is dropped; once the slices in a row without a
+    kept section span more than ``max_gap_mm`` (``slice_mm`` apart) the bone
+    has ended on that side and everything beyond is dropped (the talus under
+    the plafond lies on the tibia's last section, two 5 mm slices away).
+    Re-growing a dropped section from the marrow lying on the previous one was
+    tried: at the top of the femoral head, where partial volume leaves the
+    marrow muscle-grey, that marrow is the acetabulum's. So was the longest
+    chain of continuing sections with skips: through the fibula beside the
+    plafond it reached the talus. A bone whose polyline crosses no slice of
+    this stack (only its end reaches in) has nothing to continue from and is
+    left as it is.
     """
     from skimage.morphology import disk
 
@@ -682,17 +693,31 @@ def _trim_beyond_ends(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappi
     for name, cr in crossed.items():
         lid = ids[name]
         area = (labels == lid).sum(axis=(0, 1))
-        ks = np.flatnonzero(np.asarray(cr) & (area > 0))
-        if ks.size == 0:
+        cr = np.asarray(cr, bool)
+        if not (cr & (area > 0)).any():
             continue
-        anchor = int(ks[np.argmin(np.abs(area[ks] - np.median(area[ks])))])
-        for step in (1, -1):
+        # the shaft: the longest run of sections each continuing the one before that holds a crossing
+        # slice (a median-sized anchor could be a slice where the seed took the neighbour)
+        links = [area[k] > 0 and area[k + 1] > 0 and
+                 _continues(labels[:, :, k + 1] == lid, labels[:, :, k] == lid, fp, grow, min_overlap)
+                 for k in range(K - 1)]
+        best, run_start = (0, -1, -1), None
+        for k in range(K):
+            if area[k] == 0:
+                run_start = None
+                continue
+            if run_start is None or not links[k - 1]:
+                run_start = k
+            if cr[run_start:k + 1].any() and k - run_start + 1 > best[0]:
+                best = (k - run_start + 1, run_start, k)
+        _, lo, hi = best
+        for step, anchor in ((1, hi), (-1, lo)):
             prev = labels[:, :, anchor] == lid
             gap = 0
             k = anchor + step
             while 0 <= k < K:
                 cur = labels[:, :, k] == lid
-                if gap <= max_gap and cur.any() and _continues(cur, prev, fp, grow, min_overlap):
+                if gap * slice_mm <= max_gap_mm and cur.any() and _continues(cur, prev, fp, grow, min_overlap):
                     prev = cur
                     gap = 0
                 else:
