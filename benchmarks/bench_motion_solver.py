@@ -23,6 +23,10 @@ from each). Last, frames per second on the walk tiled to ``--frames`` frames.
 Run with::
 
     .venv/bin/python benchmarks/bench_motion_solver.py [--phantom /tmp/ph_default] [--frames 20000]
+        [--lowpass HZ] [--sweeps N]
+
+``--lowpass`` filters the markers (as ``animate --lowpass``) and ``--sweeps``
+sets the solver's ``n_sweeps`` for the lsq rows.
 
 Without ``--phantom`` a tiny phantom is made in a temporary folder (seed 1).
 """
@@ -42,7 +46,7 @@ import numpy as np
 from bonecap.io.c3d import read_c3d
 from bonecap.model import Bone, Skeleton
 from bonecap.motion.forearm import FOREARM_MARKERS, PAPER_MODEL, fit_forearm_model, forearm_twist
-from bonecap.motion.lsq import plan_segments, solve_lsq
+from bonecap.motion.lsq import lowpass_markers, plan_segments, solve_lsq
 from bonecap.motion.rigid import fit_rigid_bones, rotation_angle_deg
 
 TRIALS = ("walk", "arm_raise", "pronation", "touch")
@@ -138,7 +142,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--phantom", type=Path, default=None, help="a phantom folder (bonecap phantom -o DIR)")
     ap.add_argument("--frames", type=int, default=20000, help="frames of the tiled walk for the speed figure")
+    ap.add_argument("--lowpass", type=float, default=None, metavar="HZ",
+                    help="low-pass the markers before lsq / lsq-J (animate --lowpass HZ)")
+    ap.add_argument("--sweeps", type=int, default=None, help="lsq / lsq-J n_sweeps (default: the solver's)")
     args = ap.parse_args()
+    opts = {} if args.sweeps is None else {"n_sweeps": args.sweeps}
     tmp = None
     root = args.phantom
     if root is None:
@@ -161,14 +169,15 @@ def main():
     for t in TRIALS:
         d, meas, rate = data[t]
         t0 = time.perf_counter()
-        methods["lsq"][t] = solve_lsq(skel, mb, local, meas, marker_labels=labels, rate_hz=rate).transforms
+        m_in = meas if args.lowpass is None else lowpass_markers(meas, rate, args.lowpass)
+        methods["lsq"][t] = solve_lsq(skel, mb, local, m_in, marker_labels=labels, rate_hz=rate, **opts).transforms
         timing[t] = time.perf_counter() - t0
-        methods["lsq-J"][t] = solve_lsq(skel, mb, local, meas, marker_labels=labels, rate_hz=rate,
-                                        segments=seg_true).transforms
+        methods["lsq-J"][t] = solve_lsq(skel, mb, local, m_in, marker_labels=labels, rate_hz=rate,
+                                        segments=seg_true, **opts).transforms
         methods["rigid"][t] = rigid_per_bone(names, mb, local, meas)
 
     print(f"# bonecap motion solvers on phantom {root} ({platform.processor() or platform.machine()}, "
-          f"numpy {np.__version__})")
+          f"numpy {np.__version__}); lsq options: lowpass {args.lowpass} Hz, sweeps {args.sweeps or 'default'}")
     print(f"trials: {', '.join(f'{t} ({len(data[t][1])} frames)' for t in TRIALS)}; lsq segments: "
           f"{', '.join(plan.roots())}")
     print()
