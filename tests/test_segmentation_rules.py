@@ -207,8 +207,28 @@ def test_slice_seeds_point_on_a_slice_crosses_it():
     assert len(crossing[12]) == 1 and np.allclose(crossing[12][0], [6.0, 5.0], atol=0.01)
 
 
+def _tube_stack(n: int, K: int, dz: float, tubes, seed: int):
+    """An axial stack of long-bone sections in muscle: ``tubes`` = (i, j, outer px, marrow px, slices).
+
+    Cortex 80, marrow 900, muscle 300 inside a body disc of radius ``n // 2 - 6``, noise 8.
+    Returns the Volume and the body mask.
+    """
+    rng = np.random.default_rng(seed)
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    data = np.full((n, n, K), 300.0)
+    body = np.hypot(ii - n / 2, jj - n / 2) < n // 2 - 6
+    data[~body] = 0.0
+    for ci, cj, outer, inner, ks in tubes:
+        r = np.hypot(ii - ci, jj - cj)
+        for k in ks:
+            data[:, :, k][r < outer] = 80.0
+            data[:, :, k][r < inner] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    return Volume(data.astype(np.float32), np.diag([1.0, 1.0, dz, 1.0])), np.repeat(body[:, :, None], K, axis=2)
+
+
 def test_a_long_bone_stops_where_its_sections_stop_continuing_it():
-    """A radius-like tube ends at slice 12; a humerus-like bone sits beyond it, 6 px off its axis.
+    """A radius-like tube ends at slice 12; a humerus-like bone begins at slice 14, 6 px off its axis.
 
     The seed margin (20 mm past the polyline's end) searches slices 13-16 too: the big marrow
     there is the neighbour's and must not be labelled as the thin bone (it was, before the
@@ -216,29 +236,13 @@ def test_a_long_bone_stops_where_its_sections_stop_continuing_it():
     """
     from bonecap.segmentation.bones import segment_bones
 
-    rng = np.random.default_rng(3)
-    n, K = 120, 20
-    ii, jj = np.mgrid[:n, :n].astype(float)
-    data = np.full((n, n, K), 300.0)
-    body = np.hypot(ii - 60, jj - 60) < 55
-    data[~body] = 0.0
-    thin = np.hypot(ii - 60, jj - 60)
-    big = np.hypot(ii - 60, jj - 66)
-    for k in range(K):
-        sl = data[:, :, k]
-        if k <= 12:                     # the thin bone: radius 7 px, cortex 3 px
-            sl[thin < 7] = 80.0
-            sl[thin < 4] = 900.0
-        if k >= 14:                     # the neighbour: radius 16 px, cortex 3 px, its end a slice apart
-            sl[big < 16] = 80.0
-            sl[big < 13] = 900.0
-    data += rng.normal(0, 8, data.shape)
-    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 4.0, 1.0]))
+    K = 20
+    vol, body = _tube_stack(120, K, 4.0, [(60, 60, 7, 4, range(0, 13)),       # the thin bone
+                                          (60, 66, 16, 13, range(14, K))],    # the neighbour
+                            seed=3)
     seeds = {"radius_r": np.array([[60.0, 60.0, 0.0], [60.0, 60.0, 12 * 4.0]])}
-    labels, ids = segment_bones(vol, seeds, body_mask=np.repeat(body[:, :, None], K, axis=2), progress=False,
-                                margin_mm=20.0)
-    lab = labels == ids["radius_r"]
-    area = lab.sum(axis=(0, 1))
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=20.0)
+    area = (labels == ids["radius_r"]).sum(axis=(0, 1))
     # the thin bone is found on its slices (pi 7^2 ~ 154 px) ...
     assert np.all(np.abs(area[:13] - np.pi * 49) < 40)
     # ... and nothing of the neighbour is given to it
@@ -248,36 +252,22 @@ def test_a_long_bone_stops_where_its_sections_stop_continuing_it():
 def test_an_elbow_keeps_both_bones_in_the_slices_they_share():
     """Two long bones share a joint point, but lie side by side in the slices around it.
 
-    An elbow-like joint: the upper bone (section radius 12 px) ends at slice 6, the lower one
-    (radius 6 px, 22 px behind it) begins at slice 11 -- slices 7-10 hold both, as the olecranon
-    lies behind the trochlea. Both polylines end at the joint point inside the upper bone. A
+    An elbow-like joint: the upper bone (section radius 12 px) occupies slices 7-17, the lower one
+    (radius 6 px, 22 px behind it) slices 0-10 -- slices 7-10 hold both, as the olecranon lies
+    behind the trochlea. Both polylines end at the joint point inside the upper bone. A
     whole-slice split at the joint space gives each shared slice to one bone; following each
     bone from its shaft keeps both.
     """
     from bonecap.segmentation.bones import segment_bones
 
-    rng = np.random.default_rng(5)
-    n, K = 140, 18
-    ii, jj = np.mgrid[:n, :n].astype(float)
-    data = np.full((n, n, K), 300.0)
-    body = np.hypot(ii - 70, jj - 70) < 62
-    data[~body] = 0.0
-    up = np.hypot(ii - 70, jj - 60)
-    low = np.hypot(ii - 70, jj - 82)
-    for k in range(K):
-        sl = data[:, :, k]
-        if k >= 7:                          # the upper bone: slices 7..17
-            sl[up < 12] = 80.0
-            sl[up < 9] = 900.0
-        if k <= 10:                         # the lower bone: slices 0..10
-            sl[low < 6] = 80.0
-            sl[low < 3.5] = 900.0
-    data += rng.normal(0, 8, data.shape)
-    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 5.0, 1.0]))
+    K = 18
+    vol, body = _tube_stack(140, K, 5.0, [(70, 60, 12, 9, range(7, K)),       # the upper bone
+                                          (70, 82, 6, 3.5, range(0, 11))],    # the lower bone
+                            seed=5)
     joint = [70.0, 62.0, 9 * 5.0]
     seeds = {"humerus_r": np.array([[70.0, 60.0, 17 * 5.0], joint]),
              "ulna_r": np.array([joint, [70.0, 82.0, 0.0]])}
-    labels, ids = segment_bones(vol, seeds, body_mask=np.repeat(body[:, :, None], K, axis=2), progress=False)
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False)
     for k in range(7, 11):                  # the shared slices: each bone on its own section
         h = labels[:, :, k] == ids["humerus_r"]
         u = labels[:, :, k] == ids["ulna_r"]
