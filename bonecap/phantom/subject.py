@@ -1912,9 +1912,9 @@ def release_memory() -> None:
     on the heap, which avoids the page-fault cost of mapping every slab) and
     trimming the heap between stages keeps the resident memory nearer to what is
     alive. A full garbage collection first: the stages leave reference cycles
-    (closures over their grids) that hold ~130 MB at the default preset until
-    the cyclic collector's rare generation-2 pass gets to them (measured
-    2026-11-25: 320 -> 189 MB resident after :func:`make_subject`).
+    holding ~130 MB at the default preset until the cyclic collector's rare
+    generation-2 pass gets to them (measured 2026-11-25: 320 -> 189 MB resident
+    after :func:`make_subject`; which objects form the cycles was not traced).
     """
     gc.collect()
     try:
