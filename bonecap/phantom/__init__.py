@@ -61,9 +61,15 @@ def _to_lps(mesh: Mesh) -> Mesh:
     return mesh.transformed(MODEL_TO_LPS, "lps")
 
 
-def _may_reach_forearm_stack(mesh: Mesh, bone_to_model: np.ndarray, elbow: np.ndarray, wrist: np.ndarray,
-                             cfg: dict[str, Any]) -> bool:
-    """Whether a bone (its bounding sphere, model frame) can reach the forearm stack's field of view.
+def _bounding_sphere(mesh: Mesh) -> tuple[np.ndarray, float]:
+    """Centre and radius of a sphere holding the mesh (its bounding box's), in the mesh's frame."""
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+
+
+def _may_reach_forearm_stack(sphere: tuple[np.ndarray, float], bone_to_model: np.ndarray, elbow: np.ndarray,
+                             wrist: np.ndarray, cfg: dict[str, Any]) -> bool:
+    """Whether a bone (its bounding sphere, :func:`_bounding_sphere`) can reach the forearm stack's field of view.
 
     :func:`~bonecap.phantom.mri.plan_forearm_stack` covers skin within
     ``max_radius_mm`` (80) of the elbow-wrist axis plus a margin (<= 20 mm):
@@ -72,10 +78,7 @@ def _may_reach_forearm_stack(mesh: Mesh, bone_to_model: np.ndarray, elbow: np.nd
     each a slice thickness deep. A bone whose bounding sphere stays outside a
     cylinder of 160 mm radius around that stretch (plus 40 mm) cannot show.
     """
-    v = mesh.vertices
-    lo, hi = v.min(0), v.max(0)
-    c_bone = 0.5 * (lo + hi)
-    r = 0.5 * float(np.linalg.norm(hi - lo))
+    c_bone, r = sphere
     c = bone_to_model[:3, :3] @ c_bone + bone_to_model[:3, 3]
     d = np.asarray(wrist, float) - np.asarray(elbow, float)
     L = float(np.linalg.norm(d))
@@ -236,6 +239,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     t0 = time.perf_counter()
     bar.set_postfix_str("forearm")
     poses, forearm_truth = {}, {}
+    spheres = {name: _bounding_sphere(b.mesh) for name, b in skeleton.bones.items() if b.mesh is not None}
     for theta in FOREARM_TWISTS_DEG:
         posed = pose_forearm(skeleton, subject.skin, subject.muscle, theta, side="r")
         f_layers = [(_to_lps(posed.skin), "fat"), (_to_lps(posed.muscle), "muscle")]
@@ -246,7 +250,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
             T_model = posed.bone_to_world.get(name, bone.bone_to_world)
             # only the bones that can reach a forearm stack: the whole skeleton posed three times
             # was ~100 MB of copies that the renderer sectioned only to find nothing in the stack
-            if not _may_reach_forearm_stack(bone.mesh, T_model, posed.elbow, posed.wrist, cfg):
+            if not _may_reach_forearm_stack(spheres[name], T_model, posed.elbow, posed.wrist, cfg):
                 continue
             T = MODEL_TO_LPS @ T_model
             f_layers.append((bone.mesh.transformed(T, "lps"), "cortex"))

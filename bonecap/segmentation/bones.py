@@ -239,15 +239,23 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
         name = rows[r]
         if name is None:
             continue
-        marrow = density.fill_holes(lab == ids[c])
-        mi, mj = np.nonzero(marrow)
-        box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), img.shape, 65.0 / pixel_mm)
-        m = cortical.muscle_level(med[box], inner[box])
-        if not np.isfinite(m):
-            m = m_slice
-        out[name] |= cortical.cortical_contour(img, marrow, pixel_mm, m, body_mask=body,
-                                               **{k: v for k, v in opts[name].items() if k in _CONTOUR_KEYS})
+        out[name] |= _section_from_marrow(img, med, body, inner, pixel_mm, lab == ids[c], m_slice, opts[name])
     return out
+
+
+def _section_from_marrow(img, med, body, inner, pixel_mm: float, region: np.ndarray, m_slice: float,
+                         opts: Mapping) -> np.ndarray:
+    """A long bone's section in one slice from its marrow region: holes filled, the cortical contour
+    (:func:`~bonecap.segmentation.cortical.cortical_contour`) with the muscle level around it (the
+    slice's where the neighbourhood gives none)."""
+    marrow = density.fill_holes(region)
+    mi, mj = np.nonzero(marrow)
+    box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), img.shape, 65.0 / pixel_mm)
+    m = cortical.muscle_level(med[box], inner[box])
+    if not np.isfinite(m):
+        m = m_slice
+    return cortical.cortical_contour(img, marrow, pixel_mm, m, body_mask=body,
+                                     **{k: v for k, v in opts.items() if k in _CONTOUR_KEYS})
 
 
 def _split_shared_regions(lab: np.ndarray, n: int, seeds: Mapping[str, np.ndarray]) -> tuple[np.ndarray, int]:
@@ -434,13 +442,8 @@ def _track_joint(labels: np.ndarray, pair: tuple[str, str], zone: np.ndarray, si
         for n in pair:
             mask = np.zeros(lab.shape, bool)
             for r in own[n]:
-                marrow = density.fill_holes(lab == r)
-                mi, mj = np.nonzero(marrow)
-                box, _ = cortical._crop_box(np.array([mi.mean(), mj.mean()]), lab.shape, 65.0 / pixel_mm)
-                m = cortical.muscle_level(med[:, :, k][box], inner[:, :, k][box])
-                mask |= cortical.cortical_contour(img[:, :, k], marrow, pixel_mm, m if np.isfinite(m) else m_slice,
-                                                  body_mask=body[:, :, k],
-                                                  **{o: v for o, v in opts[n].items() if o in _CONTOUR_KEYS})
+                mask |= _section_from_marrow(img[:, :, k], med[:, :, k], body[:, :, k], inner[:, :, k], pixel_mm,
+                                             lab == r, m_slice, opts[n])
             if k == start[n][0] and not mask.any():
                 mask = start[n][1].copy()
             sec[n] = mask
@@ -577,7 +580,7 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     crossing = {n: slice_seeds(volume, seeds[n], 0.0) for n in names}
     # slices past a polyline's first point (a long bone's proximal end, its seeds run proximal to distal)
     before_start = {}
-    for n in names:
+    for n in (n for n in names if rule_of[n] == "cortical"):
         kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
         ks = np.arange(data.shape[2])
         before_start[n] = (ks < kk[0]) if kk[0] <= kk[-1] else (ks > kk[0])
@@ -652,21 +655,22 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                     opts=opts, crossed=crossed)
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
     if continuity:
-        _keep_continuous(labels, ids, crossed, pixel_mm, slice_mm=float(volume.spacing[2]))
+        _keep_continuous(labels, ids, crossed, pixel_mm)
     return labels, ids
 
 
 def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
                       pixel_mm: float, *, grow: float = 2.5, min_overlap: float = 0.5,
-                      reach_mm: float = 3.0, max_gap_mm: float | None = None, slice_mm: float = 5.0) -> None:
+                      reach_mm: float = 3.0) -> None:
     """Keep a long bone's sections only where they continue it, from its shaft to its ends (in place).
 
     A long bone's sections follow each other from slice to slice; towards its
     ends (hip, shoulder, elbow, wrist, knee, ankle) the seed -- its polyline
     there, or the seed margin beyond it -- may instead find the neighbouring
     bone's marrow (the humeral capitellum above the radial head, the carpals
-    past the wrist, the acetabulum above the femoral head, the fibula and the
-    talus where the tibia's plafond is grey with partial volume). A section
+    past the wrist, the acetabulum above the femoral head, the fibula where the
+    tibia's plafond is grey with partial volume; the talus below it is not told
+    apart, see below). A section
     continues another when it lies on it or that one on it (at least
     ``min_overlap`` within ``reach_mm``; :func:`_continues`) and is no larger
     than ``grow`` times it (the femoral condyles still widen ~20 % past the
@@ -674,15 +678,13 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
     bone's section, seen 3.5 times the radius's). Walking outwards from the
     shaft -- the longest run of sections each continuing the one before, among
     those holding a slice the polyline crosses -- a section that does not
-    continue the last kept one is dropped. With ``max_gap_mm``, once the
-    slices in a row without a kept section span more than that (``slice_mm``
-    apart) the bone has ended on that side and everything beyond is dropped:
-    the talus under the plafond lies on the tibia's last section, two 5 mm
-    slices away, and a 7.5 mm limit took it off the tibia (phantom seed 1:
-    tibia Dice +0.02) -- but on seed 2 the proximal femoral shaft's marrow was
-    grey for 30 mm, the seed took the ischium there, and the limit cut off the
-    whole femoral neck and head beyond (femur Dice 0.93 -> 0.82). Off by
-    default.
+    continue the last kept one is dropped, and the next compared with the last
+    kept. Ending a bone after a gap of more than 7.5 mm was tried: it took the
+    talus off the tibia (the talus under the plafond lies on the tibia's last
+    section, two 5 mm slices away; phantom seed 1: tibia Dice +0.02), but on
+    seed 2 the proximal femoral shaft's marrow was grey for 30 mm, the seed
+    took the ischium there, and the limit cut off the whole femoral neck and
+    head beyond (femur Dice 0.93 -> 0.82).
     Re-growing a dropped section from the marrow lying on the previous one was
     tried: at the top of the femoral head, where partial volume leaves the
     marrow muscle-grey, that marrow is the acetabulum's. So was the longest
@@ -718,19 +720,14 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
         _, lo, hi = best
         for step, anchor in ((1, hi), (-1, lo)):
             prev = labels[:, :, anchor] == lid
-            gap = 0
-            k = anchor + step
-            while 0 <= k < K:
+            for k in range(anchor + step, K if step > 0 else -1, step):
                 cur = labels[:, :, k] == lid
-                within = max_gap_mm is None or gap * slice_mm <= max_gap_mm
-                if within and cur.any() and _continues(cur, prev, fp, grow, min_overlap):
+                if not cur.any():
+                    continue
+                if _continues(cur, prev, fp, grow, min_overlap):
                     prev = cur
-                    gap = 0
                 else:
-                    if cur.any():
-                        labels[:, :, k][cur] = 0
-                    gap += 1
-                k += step
+                    labels[:, :, k][cur] = 0
 
 
 def _continues(cur: np.ndarray, prev: np.ndarray, fp: np.ndarray, grow: float, min_overlap: float) -> bool:
