@@ -298,3 +298,61 @@ def test_phantom_bone_without_target_is_carried(phantom_case):
         err = np.linalg.norm(sk.bones["tibia_l"].landmark_in_world(k) - true_k)
         assert err <= 3.0, (k, err)
     assert mean_surface_distance(sk.world_mesh("tibia_l"), truth_meshes["tibia_l"]) <= 2.5
+
+
+# --------------------------------------------------------------------------- #
+# a rigid body of several bones without targets (a pelvis) is carried as one
+# --------------------------------------------------------------------------- #
+def pelvis_template(subdivisions: int = 3) -> Skeleton:
+    """A sacrum with two hip bones (one rigid body, no targets) and two femora hanging from the hips."""
+    def ell(radii, centre):
+        s = trimesh.creation.icosphere(subdivisions=subdivisions)
+        return Mesh(np.asarray(s.vertices) * radii + centre, np.asarray(s.faces), "bone")
+
+    T0 = np.eye(4)
+    T0[:3, 3] = [0.0, 900.0, 0.0]
+    bones = {"sacrum": Bone("sacrum", None, ell((30, 50, 40), (-60, 20, 0)), T0.copy(),
+                            joint_centres={"sacroiliac_r": [-50, 30, 40], "sacroiliac_l": [-50, 30, -40]})}
+    for side, z in (("r", 1.0), ("l", -1.0)):
+        bones[f"hip_{side}"] = Bone(f"hip_{side}", "sacrum", ell((40, 60, 20), (-20, 0, 70 * z)), T0.copy(),
+                                    joint_centres={"sacroiliac": [-50, 30, 40 * z], "hip": [0, -60, 85 * z]})
+        Tf = T0.copy()
+        Tf[:3, 3] += [0.0, -60.0, 85.0 * z]
+        v, f = bent_ellipsoid(subdivisions + 1, (18, 180, 25), 0.002, (0, -200, 0))
+        v[:, 2] *= z
+        bones[f"femur_{side}"] = Bone(f"femur_{side}", f"hip_{side}", Mesh(v, f, "femur"), Tf,
+                                      joint_centres={"hip": [0, 0, 0]})
+    return Skeleton(bones, world="model", metadata={"rigid_bodies": [["sacrum", "hip_r", "hip_l"]]})
+
+
+def test_a_rigid_body_without_targets_is_carried_as_one():
+    template = pelvis_template()
+    # the person: the femora (and so the hip centres) 12 mm off the placed template, and 6 mm further apart
+    # (a wider pelvis); nothing of the pelvis itself was segmented
+    shift = np.array([6.0, -4.0, 9.0])
+    targets = {}
+    for side, z in (("r", 1.0), ("l", -1.0)):
+        n = f"femur_{side}"
+        targets[n] = Mesh(template.world_mesh(n).vertices + shift + [0.0, 0.0, 3.0 * z],
+                          template.bones[n].mesh.faces, "lps")
+    sk, report = warp_skeleton(template, targets, init=np.eye(4), start_from="placed")
+    for n in ("sacrum", "hip_r", "hip_l"):
+        assert report["bones"][n]["source"] == "neighbours"
+        # one rigid body: the same motion for the three, the placed orientation kept (two hip centres
+        # do not say how the pelvis is turned better than its placement did), moved onto the hip centres
+        move = sk.bones[n].bone_to_world @ np.linalg.inv(template.bones[n].bone_to_world)
+        np.testing.assert_allclose(move[:3, :3], np.eye(3), atol=1e-3)
+        np.testing.assert_allclose(move[:3, 3], shift, atol=0.5)
+    for side in ("r", "l"):
+        # each hip bone meets its femur's warped hip centre, and the pelvis stayed joined
+        np.testing.assert_allclose(sk.bones[f"hip_{side}"].landmark_in_world("hip"),
+                                   sk.bones[f"femur_{side}"].landmark_in_world("hip"), atol=1e-6)
+        np.testing.assert_allclose(sk.bones[f"hip_{side}"].landmark_in_world("sacroiliac"),
+                                   sk.bones["sacrum"].landmark_in_world(f"sacroiliac_{side}"), atol=1e-6)
+    width = np.linalg.norm(sk.bones["hip_r"].landmark_in_world("hip") - sk.bones["hip_l"].landmark_in_world("hip"))
+    assert abs(width - (170.0 + 6.0)) < 0.5
+    # without the rigid body, bone by bone: the unmoved sacrum pins each hip bone's sacroiliac joint and the
+    # hip bones turn toward their femora (what this guards against)
+    sk2, _ = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", rigid_bodies=[])
+    turned = sk2.bones["hip_r"].bone_to_world[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(turned) - 1) / 2, -1, 1))) > 2.0

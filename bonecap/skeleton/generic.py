@@ -2025,6 +2025,8 @@ def _build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = No
         "side_mirroring": bool(side_mirroring),
         "world_frame": desc["world_frame"],
         "root": "sacrum",
+        "rigid_bodies": [[b for b in g if b in bones] for g in desc.get("rigid_bodies", [])
+                         if sum(b in bones for b in g) > 1],
         "spine_scales": L_r["spine_scales"],
         "build_seconds": time.perf_counter() - t0,
         **({"mesh_resolution_factor": float(resolution)} if resolution != 1.0 else {}),

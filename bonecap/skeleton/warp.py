@@ -674,7 +674,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   kernel_widths_mm=None, smoothing: float = 1e-3, max_residual_mm: float = 1.5,
                   rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0,
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
-                  start_from: str = "ancestor", max_shift_mm: float = np.inf) -> tuple[Skeleton, dict[str, Any]]:
+                  start_from: str = "ancestor", max_shift_mm: float = np.inf,
+                  rigid_bodies=None) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -749,6 +750,11 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         carried by its neighbours instead; the report says why.
     max_shift_mm : float
         Likewise for a rigid fit that moves the bone's centre farther than this.
+    rigid_bodies : sequence of sequence of str, optional
+        Groups of bones rigidly attached to each other (default: the
+        template's ``metadata["rigid_bodies"]``, the pelvis for bonecap's
+        template). A group none of whose bones has a target is carried as one
+        rigid body onto all the joints it shares with the others.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -850,38 +856,59 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         for e in g:
             joint_pos[e] = c
 
-    # bones without a target: an affine from the joints they share with warped bones
+    # bones without a target: an affine from the joints they share with warped bones. A rigid body
+    # of several bones (the pelvis: sacrum and both hip bones) none of which has a target is carried
+    # as one, onto all the joints it shares with the rest: carried bone by bone, the sacrum (no warped
+    # neighbour) stayed where it was placed and pinned each hip bone's sacroiliac joint, so each hip
+    # bone turned about it toward its femur's hip centre (10 deg off on a phantom)
+    if rigid_bodies is None:
+        rigid_bodies = template.metadata.get("rigid_bodies", [])
+    body_of: dict[str, tuple[str, ...]] = {}
+    for g in rigid_bodies:
+        g = tuple(b for b in g if b in template.bones)
+        if len(g) > 1 and not any(b in results for b in g):
+            for b in g:
+                body_of[b] = g
     carried: dict[str, np.ndarray] = {}
     kept_placed: list[str] = []
     for name, bone in template.bones.items():
-        if name in results:
+        if name in results or name in carried:
             continue
-        A = [bone.landmark_in_world(k) for k in bone.joint_centres if (name, k) in joint_pos]
-        B = [joint_pos[(name, k)] for k in bone.joint_centres if (name, k) in joint_pos]
+        body = body_of.get(name, (name,))
+        A, B = [], []
+        for b in body:
+            for k in template.bones[b].joint_centres:
+                if (b, k) in joint_pos:
+                    A.append(template.bones[b].landmark_in_world(k))
+                    B.append(joint_pos[(b, k)])
         rel = _nearest_relative(template, name, results, carried)
         # a placed template: the bone's own placed pose, corrected onto its warped joints
         M = init if start_from == "placed" or rel is None else rel
-        M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3))
-        if start_from == "placed" and bone.mesh is not None:
+        M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3), rigid=len(body) > 1,
+                   keep_rotation=len(body) > 1 and start_from == "placed")
+        if start_from == "placed" and any(template.bones[b].mesh is not None for b in body):
             # joints borrowed from badly warped neighbours must not throw a placed
             # bone across the body: beyond the same bounds as an own target, keep it placed
             fake = {"T_rigid": np.eye(4), "T_affine": M, "affine_residual_mm": np.zeros(1)}
-            c = _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0)
+            c = np.concatenate([_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
+                                for b in body if template.bones[b].mesh is not None]).mean(axis=0)
             moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
             R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
             turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
             if moved > max_shift_mm or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
                 M = np.asarray(init, float).copy()
-                kept_placed.append(name)
-        carried[name] = M
+                kept_placed.extend(body)
+        for b in body:
+            carried[b] = M
         # the joints it shares only with other carried bones follow it
-        for k in bone.joint_centres:
-            if (name, k) not in joint_pos:
-                p = _apply(M, bone.landmark_in_world(k)[None])[0]
-                for g in groups:
-                    if (name, k) in g:
-                        for e in g:
-                            joint_pos.setdefault(e, p)
+        for b in body:
+            for k in template.bones[b].joint_centres:
+                if (b, k) not in joint_pos:
+                    p = _apply(M, template.bones[b].landmark_in_world(k)[None])[0]
+                    for g in groups:
+                        if (b, k) in g:
+                            for e in g:
+                                joint_pos.setdefault(e, p)
 
     def bone_map(name: str, p: np.ndarray) -> np.ndarray:
         return own_map(name, p) if name in results else _apply(carried[name], p)
@@ -969,18 +996,26 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     return out, report
 
 
-def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
+           keep_rotation: bool = False) -> np.ndarray:
     """Correct a relative's affine ``M`` so the template joint centres ``A`` land on their warped places ``B``.
 
-    4+ points spanning 3-D: the least-squares affine. Otherwise ``M`` followed by
-    the smallest correction: 3 points, a rigid fit (Umeyama); 2, the rotation
-    turning the joint-to-joint direction onto the warped one and a stretch
-    along it to the warped length, about their midpoint; 1, a shift.
+    4+ points spanning 3-D: the least-squares affine (``rigid``: ``M`` followed
+    by the least-squares rigid correction -- a body of several bones keeps its
+    shape, its joints to the rest are few and far apart). Otherwise ``M``
+    followed by the smallest correction: 3 points, a rigid fit (Umeyama); 2,
+    the rotation turning the joint-to-joint direction onto the warped one and
+    a stretch along it to the warped length, about their midpoint; 1, a shift.
+    ``keep_rotation`` leaves out the rotation of the 2-point case: ``M`` is a
+    placement that already turned the bone, and two joints say less about its
+    orientation than the placement did (a pelvis's two hip centres lie 1-3 deg
+    off its symmetric template's left-right axis in a person; turned onto them,
+    a pelvis placed within 0.1 deg came out 3 deg off on a phantom).
     """
     k = len(A)
     if k == 0:
         return M
-    if k >= 4 and np.linalg.matrix_rank(A - A.mean(0), tol=1.0) == 3:
+    if not rigid and k >= 4 and np.linalg.matrix_rank(A - A.mean(0), tol=1.0) == 3:
         return _fit_affine(A, B)
     MA = _apply(M, A)
     C = np.eye(4)
@@ -991,7 +1026,7 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
         stretch = float(np.linalg.norm(v) / max(np.linalg.norm(u), 1e-9))
         u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
         ax, c = np.cross(u, v), float(u @ v)
-        if np.linalg.norm(ax) > 1e-9:
+        if np.linalg.norm(ax) > 1e-9 and not keep_rotation:
             from scipy.spatial.transform import Rotation
 
             C[:3, :3] = Rotation.from_rotvec(ax / np.linalg.norm(ax) * np.arccos(np.clip(c, -1, 1))).as_matrix()
