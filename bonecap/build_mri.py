@@ -978,10 +978,14 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
                             max_icp_mm: float = 6.0, markers=None) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
-    For each stack: the ulna and radius are segmented with the cortical rule
-    (seeds: the personal bones' axes), meshed, and the personal bones are
-    rigidly registered onto them (ICP), which gives each bone's pose in that
-    stack. The twist of each stack is measured from four points
+    For each stack: the humerus, ulna and radius are segmented with the
+    cortical rule (seeds: the personal bones' axes), the ulna is meshed and
+    the personal ulna rigidly registered onto it (ICP); the radius's target
+    is every forearm bone voxel the registered ulna does not hold, within the
+    ring the radius sweeps turning about the ulna (its seed, placed at the MRI
+    pose, takes either bone's marrow in a pronated stack), and the personal
+    radius is registered onto it from starts turned about the radio-ulnar
+    axis. That gives each bone's pose in that stack. The twist of each stack is measured from four points
     (:func:`bonecap.motion.forearm.forearm_twist`) — the paper measured 0°,
     99.5° and 172.1°, not the nominal 0/90/180 — and the quadratics are fitted
     against the measured twists. With ``markers`` (the subject's bound wrist and
@@ -1078,40 +1082,63 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
     report entries (ICP residuals, the radius seed's turn) and the capsule centres found (LPS).
     """
     from bonecap.meshing import mesh_from_slices
-    from bonecap.segmentation.bones import segment_bones
+    from bonecap.segmentation.bones import keep_continuous, segment_bones
     from bonecap.segmentation.capsules import find_capsules
     from bonecap.segmentation.skin import segment_body
     from bonecap.skeleton.warp import rigid_icp
 
-    ulna_n, radius_n = f"ulna_{side}", f"radius_{side}"
+    ulna_n, radius_n, hum_n = f"ulna_{side}", f"radius_{side}", f"humerus_{side}"
     U, Rb = personal.bones[ulna_n], personal.bones[radius_n]
     report: dict[str, Any] = {}
     vols = load_stations([d])
     v = max(vols, key=lambda x: x.data.size)
     body = segment_body(v)
     # each bone's own axis: the ulna from the elbow to its head, the radius from its head to the wrist
-    # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided)
-    axis_joints = {ulna_n: ("elbow", "distal_radioulnar"), radius_n: ("proximal_radioulnar", "wrist")}
+    # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided), and
+    # the humerus (shoulder -> elbow): a stack reaching above the elbow holds the distal humerus, and
+    # without its own label its trochlea and epicondyles went to the ulna (a quarter of the ulna's
+    # target, 13 mm above the olecranon: its ICP settled 5-12 deg off on the phantom, 1 deg with it).
+    # Each bone is kept continuous from its shaft (``continuity``), which drops carpals past the wrist.
+    axis_joints = {hum_n: ("shoulder", "elbow"), ulna_n: ("elbow", "distal_radioulnar"),
+                   radius_n: ("proximal_radioulnar", "wrist")}
     seeds = {n: np.array([personal.bones[n].landmark_in_world(j) for j in axis_joints[n]
-                          if j in personal.bones[n].joint_centres]) for n in (ulna_n, radius_n)}
-    lab, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
+                          if j in personal.bones[n].joint_centres])
+             for n in (hum_n, ulna_n, radius_n) if n in personal.bones}
+    seeds = {n: p for n, p in seeds.items() if len(p) == 2}
+    raw, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
+    lab = keep_continuous(raw, ids, v, seeds)
     Ts = {}
+    turn = None
     for n, bone in ((ulna_n, U), (radius_n, Rb)):
-        if n == radius_n:
-            # The radius's seeds were its line at the MRI pose; pronated by up to half a turn, its distal
-            # end lies on the other side of the ulna. Its line is turned about the registered ulna's
-            # radio-ulnar axis to where the image is brightest along it (marrow) and the stack is
-            # segmented again from there.
-            turn = _radius_turn(v, _marrow_axis(Rb, seeds[radius_n]),
-                                Ts[ulna_n] @ np.linalg.inv(U.bone_to_world), U, body_mask=body)
-            if turn is not None:
-                seeds[radius_n] = seeds[radius_n] @ turn[:3, :3].T + turn[:3, 3]
-                lab, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
-                report["radius_seed_turn_deg"] = float(
-                    np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
         if n not in ids or not (lab == ids[n]).any():
             raise DataError(f"the {n.split('_')[0]} was not found in this forearm stack", d)
-        target = mesh_from_slices([(lab == ids[n], v.affine)], target_faces=8000)
+        mask = lab == ids[n]
+        if n == radius_n:
+            # The radius's seeds were its line at the MRI pose; pronated by up to half a turn, its distal
+            # end lies on the other side of the ulna, and its seed takes the ulna's marrow or the radius's
+            # from slice to slice. The ulna, registered first, tells them apart: the radius is every
+            # forearm bone voxel (either label, before the continuity walk, which broke on the swaps)
+            # that the registered ulna does not hold. A seed line turned about the ulna's radio-ulnar
+            # axis into the brightest marrow and the stack segmented again from there was tried: on
+            # one of two phantoms it picked the wrong side of the ulna (150 deg for 113).
+            # It must also lie where the radius can be: it turns about the radio-ulnar axis, so it sweeps,
+            # level by level along the axis, the ring between its nearest and farthest points from it --
+            # not the humeral capitellum above the radial head, the carpals past the wrist, nor bright fat
+            # under the skin that a seed left on the far side of the ulna took for marrow.
+            mask = (raw == ids[ulna_n]) | (raw == ids[radius_n])
+            ulna_move = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
+            ax = _radioulnar_axis(U, ulna_move)
+            if ax is not None:
+                mask &= _swept_by(Rb.mesh.transformed(ulna_move @ Rb.bone_to_world).vertices, ax, v, mask)
+            mask &= ~_inside_mesh(v, Ts[ulna_n], U.mesh, mask, margin_mm=1.5)
+            if not mask.any():
+                raise DataError("the radius was not found in this forearm stack", d)
+            # the turn into the brightest marrow is one more start for the ICP
+            turn = _radius_turn(v, _marrow_axis(Rb, seeds[radius_n]), ulna_move, U, body_mask=body)
+            if turn is not None:
+                report["radius_seed_turn_deg"] = float(
+                    np.degrees(np.arccos(np.clip((np.trace(turn[:3, :3]) - 1) / 2, -1, 1))))
+        target = mesh_from_slices([(mask, v.affine)], target_faces=8000)
         pts = bone.mesh.transformed(bone.bone_to_world).vertices
         if n == ulna_n:
             T, res = rigid_icp(pts, target)
@@ -1126,6 +1153,57 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
                             f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
     centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
     return Ts, report, centres.tolist()
+
+
+def _swept_by(points: np.ndarray, axis: tuple[np.ndarray, np.ndarray], volume: Volume, where: np.ndarray,
+              bin_mm: float = 5.0, margin_mm: float = 2.0) -> np.ndarray:
+    """Voxels (of ``where``) that ``points`` can reach turning about ``axis`` (a point and a unit direction).
+
+    Per ``bin_mm`` level along the axis, the ring between the points' nearest and farthest distances
+    from it, widened by ``margin_mm``; nothing beyond their ends.
+    """
+    def cyl(p):
+        d = p - axis[0]
+        t = d @ axis[1]
+        return t, np.linalg.norm(d - t[:, None] * axis[1], axis=1)
+
+    t, r = cyl(points)
+    lo = np.floor(t.min() / bin_mm)
+    nb = int(np.floor(t.max() / bin_mm) - lo) + 1
+    b = (np.floor(t / bin_mm) - lo).astype(int)
+    rmin, rmax = np.full(nb, np.inf), np.full(nb, -np.inf)
+    np.minimum.at(rmin, b, r)
+    np.maximum.at(rmax, b, r)
+    # a level the points skip (none there) takes its neighbours' ring
+    for k in np.flatnonzero(~np.isfinite(rmin)):
+        rmin[k] = min(rmin[max(k - 1, 0)], rmin[min(k + 1, nb - 1)])
+        rmax[k] = max(rmax[max(k - 1, 0)], rmax[min(k + 1, nb - 1)])
+    ijk = np.argwhere(where)
+    out = np.zeros(where.shape, bool)
+    tv, rv = cyl(volume.index_to_world(ijk.astype(float)))
+    bv = np.floor(tv / bin_mm) - lo
+    ok = (tv >= t.min() - 1.0) & (tv <= t.max() + 1.0)
+    bi = np.clip(bv, 0, nb - 1).astype(int)
+    ok &= (rv >= rmin[bi] - margin_mm) & (rv <= rmax[bi] + margin_mm)
+    out[tuple(ijk[ok].T)] = True
+    return out
+
+
+def _inside_mesh(volume: Volume, bone_to_world: np.ndarray, mesh: Mesh, where: np.ndarray,
+                 margin_mm: float = 1.5) -> np.ndarray:
+    """Voxels (of ``where``) inside a bone's mesh posed by ``bone_to_world`` or within ``margin_mm`` of it."""
+    import pyvista as pv
+
+    out = np.zeros(where.shape, bool)
+    ijk = np.argwhere(where)
+    if not len(ijk):
+        return out
+    verts = mesh.vertices @ bone_to_world[:3, :3].T + bone_to_world[:3, 3]
+    surf = pv.PolyData(verts, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+    # VTK's implicit distance: signed by the (outward) normals, negative inside
+    dist = pv.PolyData(volume.index_to_world(ijk.astype(float))).compute_implicit_distance(surf)
+    out[tuple(ijk[np.asarray(dist["implicit_distance"]) <= margin_mm].T)] = True
+    return out
 
 
 def _radioulnar_axis(ulna: Bone, ulna_move: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -135,8 +135,10 @@ def _finish(verts: np.ndarray, faces: np.ndarray, smooth_iterations: int, target
     if target_faces and len(tm.faces) > target_faces:
         import fast_simplification
 
-        # quadric decimation can pinch two sheets into a non-manifold edge: retry with other targets
-        for frac in (1.0, 0.9, 0.8, 1.2):
+        # quadric decimation can pinch two sheets into a non-manifold edge: retry with other targets, up to
+        # twice as many faces (a third of a forearm stack's bones failed the four closest ones and kept all
+        # 110 000 faces: every ICP onto them took five times as long)
+        for frac in (1.0, 0.9, 0.8, 1.2, 1.5, 2.0):
             v, f = fast_simplification.simplify(np.asarray(tm.vertices, dtype=np.float32),
                                                 np.asarray(tm.faces, dtype=np.int64),
                                                 target_reduction=max(0.0, 1.0 - frac * target_faces / len(tm.faces)))

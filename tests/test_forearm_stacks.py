@@ -1,4 +1,4 @@
-"""Forearm stacks (build-subject stage 8): finding the radius's turn about the ulna, analytic cases.
+"""Forearm stacks (build-subject stage 8): the radius's turn about the ulna and its target, analytic cases.
 
 The whole stage runs on the default phantom in ``benchmarks/bench_pipeline.py`` (the tiny preset's
 1.5 mm / 5 mm stacks cannot show a forearm's marrow); here its two geometric steps are checked on a
@@ -11,7 +11,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from bonecap.build_mri import _marrow_axis, _radius_turn
+from bonecap.build_mri import _inside_mesh, _marrow_axis, _radius_turn, _swept_by
 from bonecap.model import Bone, Mesh, Volume
 
 L = 240.0          # radius length, mm
@@ -96,3 +96,43 @@ def test_straight_chord_misses_the_bowed_marrow():
         return float(np.median(map_coordinates(vol.data, vol.world_to_index(p).T, order=1)))
 
     assert median(on_axis) > 2500.0 > median(on_chord)
+
+
+def test_the_radius_target_is_where_the_radius_can_turn_to():
+    """Voxels the radius sweeps turning about the radio-ulnar axis: its ring, level by level, nothing else."""
+    vol = _stack(0.0)
+    radius = _radius_bone()
+    pts = radius.inner_mesh.transformed(radius.bone_to_world).vertices       # marrow tube, 15-19 mm off the axis
+    pts = pts[pts[:, 2] <= 200.0]                            # a radius ending 40 mm below the stack's top
+    axis = (np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    everywhere = np.ones(vol.data.shape, bool)
+    swept = _swept_by(pts, axis, vol, everywhere)
+
+    def at(x, y, z):
+        return swept[tuple(np.round(vol.world_to_index(np.array([[x, y, z]]))[0]).astype(int))]
+
+    z = L / 2
+    r = _centre_x(z)
+    for ang in (0.0, 100.0, 180.0, 260.0):                   # the radius turned half a turn is still kept
+        assert at(r * np.cos(np.radians(ang)), r * np.sin(np.radians(ang)), z)
+    assert not at(0.0, 0.0, z)                               # the ulna's place, on the axis
+    assert not at(r + MARROW_R + 6.0, 0.0, z)                # fat under the skin, farther out
+    assert not at(_centre_x(220.0), 0.0, 220.0)              # past its end (a capitellum above a radial head)
+    # near the ends the ring is the one of that level (the bow is smaller there)
+    assert at(_centre_x(5.0), 0.0, 5.0) and not at(_centre_x(L / 2) + MARROW_R + 2.5, 0.0, 5.0)
+
+
+def test_voxels_inside_a_posed_bone_or_near_it():
+    vol = _stack(0.0)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    pose[:3, 3] = [5.0, -4.0, 120.0]
+    got = _inside_mesh(vol, pose, Mesh(np.asarray(ball.vertices), np.asarray(ball.faces), "ulna_r"),
+                       np.ones(vol.data.shape, bool), margin_mm=1.5)
+    xyz = vol.index_to_world(np.argwhere(np.ones(vol.data.shape, bool)).astype(float))
+    d = np.linalg.norm(xyz - pose[:3, 3], axis=1)
+    flat = got.reshape(-1)
+    assert flat[d <= 9.5].all()                              # inside
+    assert flat[(d >= 10.3) & (d <= 11.2)].all()             # within the margin outside
+    assert not flat[d >= 12.0].any()

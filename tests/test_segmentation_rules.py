@@ -274,3 +274,35 @@ def test_an_elbow_keeps_both_bones_in_the_slices_they_share():
         assert abs(h.sum() - np.pi * 144) < 60, (k, h.sum())
         assert abs(u.sum() - np.pi * 36) < 30, (k, u.sum())
         assert h[70, 60] and u[70, 82]
+
+
+def test_the_continuity_walk_trims_ends_but_does_not_take_half_a_bone():
+    """keep_continuous on given labels: sections that jump aside past the shaft are dropped -- unless
+    that would be most of the bone (a seed swapping between two bones broke the shaft: trust nothing)."""
+    from bonecap.segmentation.bones import keep_continuous
+
+    K = 20
+    vol = Volume(np.zeros((60, 60, K), np.float32), np.diag([1.0, 1.0, 4.0, 1.0]))
+    yy, xx = np.mgrid[:60, :60]
+    at = {"A": (xx - 20) ** 2 + (yy - 20) ** 2 <= 16, "B": (xx - 40) ** 2 + (yy - 40) ** 2 <= 16}
+
+    def labels_for(place_of_slice):
+        lab = np.zeros(vol.data.shape, np.int32)
+        for k in range(K):
+            lab[:, :, k][at[place_of_slice(k)]] = 1
+        return lab
+
+    # the polyline crosses slices 0-12 at A; slices 13-19 jump to B: the ends are trimmed
+    seeds = {"radius_r": np.array([[20.0, 20.0, 0.0], [20.0, 20.0, 48.0]])}
+    lab = labels_for(lambda k: "A" if k <= 12 else "B")
+    out = keep_continuous(lab, {"radius_r": 1}, vol, seeds)
+    area = (out == 1).sum(axis=(0, 1))
+    assert (area[:13] > 0).all() and (area[13:] == 0).all()
+    assert (lab == 1).sum(axis=(0, 1))[13:].all()            # the input is left as it was
+    # the polyline crosses only slices 0-3 at A, the other 16 sections lie at B: the walk would drop
+    # 80 % of the bone -- the labels are kept as segmented, with a warning
+    seeds = {"radius_r": np.array([[20.0, 20.0, 0.0], [20.0, 20.0, 12.0]])}
+    lab = labels_for(lambda k: "A" if k <= 3 else "B")
+    with pytest.warns(UserWarning, match="do not continue"):
+        out = keep_continuous(lab, {"radius_r": 1}, vol, seeds)
+    np.testing.assert_array_equal(out, lab)

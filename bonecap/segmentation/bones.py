@@ -26,6 +26,7 @@ density-threshold rules; seeds per bone).
 from __future__ import annotations
 
 import re
+import warnings
 from functools import partial
 from typing import Mapping
 
@@ -38,7 +39,7 @@ from bonecap.progress import progress as _progress
 from bonecap.segmentation import cortical, density
 from bonecap.segmentation.skin import segment_body
 
-__all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones"]
+__all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones", "keep_continuous"]
 
 #: Bones segmented by the cortical-edge rule (base names, without ``_r``/``_l``).
 LONG_BONES = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
@@ -659,9 +660,46 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     return labels, ids
 
 
+def keep_continuous(labels: np.ndarray, ids: Mapping[str, int], volume: Volume, seeds: Mapping[str, np.ndarray],
+                    rules: Mapping[str, str] | None = None) -> np.ndarray:
+    """The continuity walk of :func:`segment_bones` on labels it made with ``continuity=False``.
+
+    For a caller that wants both (the forearm stacks: the ulna from the walked
+    labels, the radius from every forearm bone voxel before it) without
+    segmenting twice.
+
+    Parameters
+    ----------
+    labels : ndarray (I, J, K) of int
+        From ``segment_bones(volume, seeds, continuity=False)``; not modified.
+    ids : dict of str -> int
+        Its bone ids.
+    volume : Volume
+        The stack it was segmented from (its grid).
+    seeds : dict of str -> ndarray (N, 3)
+        The same seeds (LPS polylines).
+    rules : dict of str -> str, optional
+        The same rules; only long (``"cortical"``) bones are walked.
+
+    Returns
+    -------
+    ndarray
+        A copy of ``labels`` with the sections that do not continue their bone removed.
+    """
+    labels = np.array(labels, copy=True)
+    if labels.shape != np.asarray(volume.data).shape:
+        raise ValueError(f"labels must have the volume's shape {np.asarray(volume.data).shape}, got {labels.shape}")
+    rules = dict(rules or {})
+    long_bones = [n for n in seeds if n in ids and rules.get(n, default_rule(n)) == "cortical"]
+    crossed = {n: [len(c) > 0 for c in slice_seeds(volume, seeds[n], 0.0)] for n in long_bones}
+    pixel_mm = float(0.5 * (volume.spacing[0] + volume.spacing[1]))
+    _keep_continuous(labels, ids, crossed, pixel_mm)
+    return labels
+
+
 def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
                       pixel_mm: float, *, grow: float = 2.5, min_overlap: float = 0.5,
-                      reach_mm: float = 3.0) -> None:
+                      reach_mm: float = 3.0, max_loss: float = 0.5) -> None:
     """Keep a long bone's sections only where they continue it, from its shaft to its ends (in place).
 
     A long bone's sections follow each other from slice to slice; towards its
@@ -691,7 +729,11 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
     chain of continuing sections with skips: through the fibula beside the
     plafond it reached the talus. A bone whose polyline crosses no slice of
     this stack (only its end reaches in) has nothing to continue from and is
-    left as it is.
+    left as it is. Nor is a bone the walk would take more than ``max_loss`` of
+    (by slices): the walk trims ends, and losing half a bone means the shaft
+    was broken (a pronated radius lying against the ulna left half-sections in
+    four slices of a forearm stack: the longest unbroken run was its proximal
+    third, and the walk dropped the rest).
     """
     from skimage.morphology import disk
 
@@ -718,16 +760,27 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
             if cr[run_start:k + 1].any() and k - run_start + 1 > best[0]:
                 best = (k - run_start + 1, run_start, k)
         _, lo, hi = best
+        drop = []
         for step, anchor in ((1, hi), (-1, lo)):
-            prev = labels[:, :, anchor] == lid
+            prev, k_prev = labels[:, :, anchor] == lid, anchor
             for k in range(anchor + step, K if step > 0 else -1, step):
-                cur = labels[:, :, k] == lid
-                if not cur.any():
+                if area[k] == 0:
                     continue
-                if _continues(cur, prev, fp, grow, min_overlap):
-                    prev = cur
+                cur = labels[:, :, k] == lid
+                # the next section up: the link found for the shaft is the same test (downwards the roles of
+                # the two sections swap, and the size limit is one-sided)
+                ok = links[k_prev] if k == k_prev + 1 else _continues(cur, prev, fp, grow, min_overlap)
+                if ok:
+                    prev, k_prev = cur, k
                 else:
-                    labels[:, :, k][cur] = 0
+                    drop.append(k)
+        # counted in slices: a big neighbour's sections past a thin bone's end outweigh it in voxels
+        if len(drop) > max_loss * np.count_nonzero(area):
+            warnings.warn(f"{name}: its sections do not continue each other over more than {max_loss:.0%} "
+                          "of it; kept as segmented", stacklevel=3)
+            continue
+        for k in drop:
+            labels[:, :, k][labels[:, :, k] == lid] = 0
 
 
 def _continues(cur: np.ndarray, prev: np.ndarray, fp: np.ndarray, grow: float, min_overlap: float) -> bool:
