@@ -356,6 +356,13 @@ def load_seeds(path: str | os.PathLike, *, with_settings: bool = False):
     brighter than muscle) and ``rules`` (bone -> ``cortical`` | ``density``,
     e.g. a patella whose cortex shows as clearly as a long bone's).
 
+    A long bone's polyline (femur, tibia, fibula, humerus, ulna, radius) runs
+    from its proximal end to its distal end: in an axial stack, a region
+    holding its seed past the proximal end (a femoral head around the hip's
+    centre) stays the long bone's rather than going to a density-rule bone
+    there (:func:`bonecap.segmentation.bones.segment_bones`). Points in the
+    other order still seed the bone; only that rule then looks the wrong way.
+
     Returns
     -------
     dict bone -> ndarray (N, 3)
