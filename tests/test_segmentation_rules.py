@@ -306,3 +306,60 @@ def test_the_continuity_walk_trims_ends_but_does_not_take_half_a_bone():
     with pytest.warns(UserWarning, match="do not continue"):
         out = keep_continuous(lab, {"radius_r": 1}, vol, seeds)
     np.testing.assert_array_equal(out, lab)
+
+
+def test_rim_darkness_tells_marrow_from_a_speck_of_fat():
+    """Marrow is rimmed by its dark cortex, a speck of fat between muscles by muscle."""
+    from scipy import ndimage
+
+    img, body = _long_bone_slice()
+    ii, jj = np.mgrid[:160, :160]
+    img[np.hypot(ii - 80, jj - 120) < 3] = 900.0          # the speck, in the muscle
+    lab, n = ndimage.label(ndimage.gaussian_filter(img, 0.7) > 1.2 * 300.0)
+    marrow, speck = lab[80, 78], lab[80, 120]
+    rim = cortical.rim_darkness(lab, [marrow, speck], img, 300.0, 1.0)
+    assert rim[0] > 0.9 and rim[1] < 0.1
+    with pytest.raises(ValueError, match="width_mm"):
+        cortical.rim_darkness(lab, [marrow], img, 300.0, 1.0, width_mm=0.0)
+    with pytest.raises(ValueError, match="shape"):
+        cortical.rim_darkness(lab[:10], [marrow], img, 300.0, 1.0)
+
+
+def test_a_seed_nearer_a_speck_of_fat_than_the_marrow_takes_the_marrow():
+    """A seed line 8 px off a bone's axis, and in one slice a bright speck of fat 2 px from it: the
+    marrow is 3 px farther but rimmed by cortex; without the rim's cost (``unrimmed_cost_mm=0``)
+    the speck takes the seed and the bone loses that section (seen on a forearm stack, where it cut
+    the ulna's chain from its shaft to the olecranon)."""
+    from bonecap.segmentation.bones import segment_bones
+
+    K = 12
+    vol, body = _tube_stack(120, K, 4.0, [(60, 60, 9, 6, range(K))], seed=7)
+    ii, jj = np.mgrid[:120, :120]
+    vol.data[:, :, 6][np.hypot(ii - 60, jj - 70) < 2.6] = 900.0   # the speck, 2 px beyond the seed
+    seeds = {"ulna_r": np.array([[60.0, 68.0, 0.0], [60.0, 68.0, (K - 1) * 4.0]])}
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False)
+    sec = labels[:, :, 6] == ids["ulna_r"]
+    assert sec[60, 60] and abs(sec.sum() - np.pi * 81) < 40
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False,
+                                options={"ulna_r": {"unrimmed_cost_mm": 0.0}}, continuity=False)
+    assert not labels[60, 60, 6]
+
+
+def test_marrow_sections_finds_a_bone_without_a_seed():
+    """Two bones; the one in ``exclude`` is left, a speck of fat is not a bone, one section per slice."""
+    from bonecap.segmentation.bones import marrow_sections
+
+    K = 6
+    vol, body = _tube_stack(120, K, 4.0, [(45, 60, 9, 6, range(K)), (78, 60, 7, 4, range(K))], seed=8)
+    ii, jj = np.mgrid[:120, :120]
+    vol.data[:, :, 2][np.hypot(ii - 60, jj - 90) < 4] = 900.0         # a speck bigger than the marrow
+    exclude = np.repeat((np.hypot(ii - 45, jj - 60) < 10)[:, :, None], K, axis=2)
+    out = marrow_sections(vol, body, body_mask=body, exclude=exclude, per_slice=1)
+    for k in range(K):
+        assert out[78, 60, k] and not out[45, 60, k] and not out[60, 90, k], k
+        assert abs(out[:, :, k].sum() - np.pi * 49) < 30, (k, out[:, :, k].sum())
+    # without ``exclude`` the bigger bone comes first
+    out = marrow_sections(vol, body, body_mask=body, per_slice=1)
+    assert out[45, 60].all() and not out[78, 60].any()
+    with pytest.raises(ValueError, match="where"):
+        marrow_sections(vol, body[:, :, :2])
