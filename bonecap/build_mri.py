@@ -1201,19 +1201,30 @@ def _swept_by(points: np.ndarray, axis: tuple[np.ndarray, np.ndarray], volume: V
 
 def _inside_mesh(volume: Volume, bone_to_world: np.ndarray, mesh: Mesh, where: np.ndarray,
                  margin_mm: float = 1.5) -> np.ndarray:
-    """Voxels (of ``where``) inside a bone's mesh posed by ``bone_to_world`` or within ``margin_mm`` of it."""
-    import pyvista as pv
+    """Voxels (of ``where``) inside a bone's mesh posed by ``bone_to_world`` or within ``margin_mm`` of it.
 
-    out = np.zeros(where.shape, bool)
-    ijk = np.argwhere(where)
-    if not len(ijk):
-        return out
+    The mesh is voxelised on the stack's grid (half a voxel or more inside it, by the phantom's
+    scan-line rasteriser) and grown by ``margin_mm`` (Euclidean, in mm). VTK's signed distance
+    per voxel gave the same answer at ~5 us a point: 7 s for the ring a radius sweeps.
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    from bonecap.phantom.render import voxelise_labels
+
+    where = np.asarray(where, bool)
     verts = mesh.vertices @ bone_to_world[:3, :3].T + bone_to_world[:3, 3]
-    surf = pv.PolyData(verts, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
-    # VTK's implicit distance: signed by the (outward) normals, negative inside
-    dist = pv.PolyData(volume.index_to_world(ijk.astype(float))).compute_implicit_distance(surf)
-    out[tuple(ijk[np.asarray(dist["implicit_distance"]) <= margin_mm].T)] = True
-    return out
+    inside = voxelise_labels([(Mesh(verts, mesh.faces, "lps"), 1)], volume.affine, where.shape,
+                             inplane_supersample=2, through_plane_samples=1) > 0
+    out = np.zeros(where.shape, bool)
+    if not inside.any():
+        return out
+    sp = np.asarray(volume.spacing, float)
+    pad = np.ceil(margin_mm / sp).astype(int) + 1
+    nz = np.nonzero(inside)
+    box = tuple(slice(max(int(a.min()) - p, 0), min(int(a.max()) + p + 1, n))
+                for a, p, n in zip(nz, pad, where.shape))
+    out[box] = distance_transform_edt(~inside[box], sampling=sp) <= margin_mm
+    return out & where
 
 
 def _radioulnar_axis(ulna: Bone, ulna_move: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
