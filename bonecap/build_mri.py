@@ -1203,27 +1203,45 @@ def _inside_mesh(volume: Volume, bone_to_world: np.ndarray, mesh: Mesh, where: n
                  margin_mm: float = 1.5) -> np.ndarray:
     """Voxels (of ``where``) inside a bone's mesh posed by ``bone_to_world`` or within ``margin_mm`` of it.
 
-    The mesh is voxelised on the stack's grid (half a voxel or more inside it, by the phantom's
-    scan-line rasteriser) and grown by ``margin_mm`` (Euclidean, in mm). VTK's signed distance
-    per voxel gave the same answer at ~5 us a point: 7 s for the ring a radius sweeps.
+    The mesh is voxelised on the stack's grid (by the phantom's scan-line rasteriser); voxels deeper
+    inside it than a voxel's diagonal are in, those farther out than the margin and a diagonal are
+    out, and only the band between is tested point by point (VTK's signed distance, ~5 us a point:
+    on every voxel of the ring a radius sweeps it took 7 s a stack).
     """
+    import pyvista as pv
     from scipy.ndimage import distance_transform_edt
 
     from bonecap.phantom.render import voxelise_labels
 
     where = np.asarray(where, bool)
+    out = np.zeros(where.shape, bool)
     verts = mesh.vertices @ bone_to_world[:3, :3].T + bone_to_world[:3, 3]
     inside = voxelise_labels([(Mesh(verts, mesh.faces, "lps"), 1)], volume.affine, where.shape,
-                             inplane_supersample=2, through_plane_samples=1) > 0
-    out = np.zeros(where.shape, bool)
-    if not inside.any():
-        return out
+                             inplane_supersample=1, through_plane_samples=1) > 0
     sp = np.asarray(volume.spacing, float)
-    pad = np.ceil(margin_mm / sp).astype(int) + 1
-    nz = np.nonzero(inside)
-    box = tuple(slice(max(int(a.min()) - p, 0), min(int(a.max()) + p + 1, n))
-                for a, p, n in zip(nz, pad, where.shape))
-    out[box] = distance_transform_edt(~inside[box], sampling=sp) <= margin_mm
+    diag = float(np.linalg.norm(sp))
+    if inside.any():
+        pad = np.ceil((margin_mm + diag) / sp).astype(int) + 1
+        nz = np.nonzero(inside)
+        box = tuple(slice(max(int(a.min()) - p, 0), min(int(a.max()) + p + 1, n))
+                    for a, p, n in zip(nz, pad, where.shape))
+        ins = inside[box]
+        deep = ins & (distance_transform_edt(ins, sampling=sp) > diag)
+        band = (ins & ~deep) | (~ins & (distance_transform_edt(~ins, sampling=sp) <= margin_mm + diag))
+        out[box] = deep
+        test = np.zeros(where.shape, bool)
+        test[box] = band
+    else:  # smaller than a voxel: test the mesh's box
+        test = np.zeros(where.shape, bool)
+        lo = np.floor(volume.world_to_index(verts).min(axis=0) - (margin_mm + diag) / sp.min()).astype(int)
+        hi = np.ceil(volume.world_to_index(verts).max(axis=0) + (margin_mm + diag) / sp.min()).astype(int) + 1
+        test[tuple(slice(max(a, 0), max(min(b, n), 0)) for a, b, n in zip(lo, hi, where.shape))] = True
+    ijk = np.argwhere(test & where)
+    if len(ijk):
+        surf = pv.PolyData(verts, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+        # VTK's implicit distance: signed by the (outward) normals, negative inside
+        dist = pv.PolyData(volume.index_to_world(ijk.astype(float))).compute_implicit_distance(surf)
+        out[tuple(ijk[np.asarray(dist["implicit_distance"]) <= margin_mm].T)] = True
     return out & where
 
 
