@@ -915,13 +915,19 @@ def capsules_to_markers(capsules: dict[str, np.ndarray], skin: Mesh, *, capsule_
     return out
 
 
-def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, mset, marker_radius_mm: float = 7.0
-               ) -> dict[str, np.ndarray]:
+def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, mset, marker_radius_mm: float = 7.0,
+               snap_mm: float = 40.0) -> dict[str, np.ndarray]:
     """Move each placed marker to the personal skin plus the marker's radius, along the landmark's normal.
 
     The marker set's ``offset_mm`` is a typical tissue depth; with MRI we
     measure the real one: the ray from the landmark through the guessed
     marker position meets the skin, and the marker sits one radius beyond.
+    A ray that meets no skin within 8 cm (the bone surface's normal at a
+    notch, the jugular notch's, points into the neck) leaves the marker at
+    the skin point nearest its guessed position, if that lies within
+    ``snap_mm``: it had stayed inside the body, 30 mm behind the skin (CLAV on
+    every phantom). Farther than that the skin does not cover the spot (the
+    hands of a whole-body scan) and the guess stays.
     """
     if skin is None:
         return placed
@@ -946,6 +952,7 @@ def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, m
         locs, ray_idx, tri = tm.ray.intersects_location(origins, dirs, multiple_hits=False)
     except Exception:  # noqa: BLE001 - no ray engine: keep the manual's depths
         return placed
+    hit = np.zeros(len(names), bool)
     for loc, r, f in zip(locs, ray_idx, tri):
         depth = np.linalg.norm(loc - origins[r])
         if depth < 80.0:  # a hit beyond 8 cm is another body part (the other leg, an arm)
@@ -954,6 +961,14 @@ def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, m
             n = tm.face_normals[f]
             n = n if n @ dirs[r] > 0 else -n
             out[names[r]] = loc + n * marker_radius_mm
+            hit[r] = True
+    if not hit.all():
+        miss = np.flatnonzero(~hit)
+        guess = np.array([placed[names[i]] for i in miss])
+        near, dist, f = tm.nearest.on_surface(guess)
+        for i, q, d, fi in zip(miss, near, dist, f):
+            if d <= snap_mm:
+                out[names[i]] = q + tm.face_normals[fi] * marker_radius_mm   # the skin's normals point out
     return out
 
 
