@@ -926,8 +926,8 @@ def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, m
     notch, the jugular notch's, points into the neck) leaves the marker at
     the skin point nearest its guessed position, if that lies within
     ``snap_mm``: it had stayed inside the body, 30 mm behind the skin (CLAV on
-    every phantom). Farther than that the skin does not cover the spot (the
-    hands of a whole-body scan) and the guess stays.
+    every phantom). A guess outside the skin, or farther than that from it
+    (the hands of a whole-body scan), stays.
     """
     if skin is None:
         return placed
@@ -966,9 +966,13 @@ def _onto_skin(placed: dict[str, np.ndarray], skin: Mesh | None, sk: Skeleton, m
         miss = np.flatnonzero(~hit)
         guess = np.array([placed[names[i]] for i in miss])
         near, dist, f = tm.nearest.on_surface(guess)
-        for i, q, d, fi in zip(miss, near, dist, f):
-            if d <= snap_mm:
-                out[names[i]] = q + tm.face_normals[fi] * marker_radius_mm   # the skin's normals point out
+        for i, q, d, fi, g in zip(miss, near, dist, f, guess):
+            n = tm.face_normals[fi]   # the skin's normals point out of the body
+            # only a guess behind the skin moves: one outside it (a finger marker beside a hand the scan
+            # did not cover well) snapped onto the nearest skin bent the hand's marker pattern (carpals
+            # 12.8 -> 14.4 deg)
+            if d <= snap_mm and (g - q) @ n < 0:
+                out[names[i]] = q + n * marker_radius_mm
     return out
 
 
