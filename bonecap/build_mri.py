@@ -756,8 +756,8 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
 
 def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> dict[str, Any]:
     """Markers on the personal skin over their landmarks; capsules where found; the static trial binds."""
-    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, bind_static, joint_consistent, neutral_twist,
-                                       pose_to_static, static_markers)
+    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, bind_static,
+                                       joint_consistent, neutral_twist, pose_to_static, static_markers)
     from bonecap.markers import place_markers
     from bonecap.subject import MarkerBinding
 
@@ -811,7 +811,9 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         if guessed:
             solved = neutral_twist(sk, solved, tuple(guessed))
         report["static_knee_twist_from_mri"] = guessed
-        # the foot's roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
+        # the hand's twist is the radius's (the wrist turns no way about its long axis), and the foot's roll
+        # about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
+        solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)
         poses = joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
         bound = bind_static(sk, snames, bones, lab, poses)
         moved = {n: float(np.linalg.norm(bound[n].local - subject.markers[n].local)) for n in bound}

@@ -120,6 +120,14 @@ FOOT_AXES: dict[str, tuple[str, str] | None] = {"talus": ("foot", "metatarsal2_h
                                                  "foot": None}
 
 
+#: The hand: its twist about its long axis (wrist -> head of the 3rd metacarpal, Wu et al. 2005) is the
+#: radius's. The wrist is ellipsoid (flexion and deviation, no axial rotation), while the finger markers
+#: lie ~20 mm apart across the hand, so 10-20 mm of their placement turned a phantom's static hand by
+#: 6-19 degrees. The rays ride on the carpals (the solver carries them as one segment).
+HAND_PREFIXES = ("carpals", "ray")
+HAND_AXES: dict[str, tuple[str, str] | None] = {"carpals": ("ray3", "metacarpal_head"), "ray": None}
+
+
 def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tibia", "humerus"),
                   axes: dict[str, tuple[str, str]] | None = None) -> np.ndarray:
     """Give the long bones of a static pose the reference twist relative to their parents.
@@ -140,6 +148,8 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     takes the foot's roll from the shank; ``prefixes=FOOT_PREFIXES,
     axes=FOOT_AXES`` does so here (for an MRI subject the reference is the
     MRI pose: the foot's inversion relative to the shank, not its flexion).
+    The hand likewise takes its twist from the radius (``HAND_PREFIXES``,
+    ``HAND_AXES``): the wrist has no axial rotation of its own.
 
     Parameters
     ----------
@@ -324,6 +334,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     placed = place_markers(mset, sk, names)
     local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
     poses = neutral_twist(sk, pose_to_static(sk, bones, local, lab))
+    poses = neutral_twist(sk, poses, HAND_PREFIXES, HAND_AXES)
     poses = joint_consistent(sk, neutral_twist(sk, poses, FOOT_PREFIXES, FOOT_AXES))
     markers = bind_static(sk, names, bones, lab, poses)
     # residual of the placed (template) markers at the static pose: how far the

@@ -221,6 +221,45 @@ def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
         assert Rotation.from_matrix(kept[i][:3, :3].T @ flexed[i][:3, :3]).magnitude() < np.radians(0.01)
 
 
+def test_the_hand_takes_its_twist_from_the_radius_but_its_flexion_from_the_markers():
+    """neutral_twist with the hand axes: a static hand turned about its long axis (wrist -> head of the
+    3rd metacarpal) gets the reference twist back, the rays riding on the carpals; a palmar flexion
+    about the wrist is kept (the wrist is ellipsoid: flexion and deviation, no axial rotation)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_subject import HAND_AXES, HAND_PREFIXES, neutral_twist
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    hand = [sk.names.index(n) for n in sk.names if n.endswith("_r") and n.startswith(HAND_PREFIXES)]
+    assert len(hand) == 6
+    wrist = sk.bones["carpals_r"].landmark_in_world("wrist")
+    mc3 = sk.bones["ray3_r"].landmark_in_world("metacarpal_head")
+
+    def turned(axis, deg):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
+        T[:3, 3] = wrist - T[:3, :3] @ wrist
+        out = ref.copy()
+        out[hand] = T @ ref[hand]
+        return out
+
+    fixed = neutral_twist(sk, turned(mc3 - wrist, 15.0), HAND_PREFIXES, HAND_AXES)
+    for i in hand:
+        assert Rotation.from_matrix(fixed[i][:3, :3].T @ ref[i][:3, :3]).magnitude() < np.radians(0.05), sk.names[i]
+    long_axis = (mc3 - wrist) / np.linalg.norm(mc3 - wrist)
+    z = sk.bones["radius_r"].bone_to_world[:3, 2]                        # the radius's Z: flexion
+    flexed = turned(z - (z @ long_axis) * long_axis, 30.0)               # a swing, no twist
+    kept = neutral_twist(sk, flexed, HAND_PREFIXES, HAND_AXES)
+    for i in hand:
+        assert Rotation.from_matrix(kept[i][:3, :3].T @ flexed[i][:3, :3]).magnitude() < np.radians(0.5), sk.names[i]
+    # without the hand's prefixes nothing moves
+    untouched = neutral_twist(sk, turned(mc3 - wrist, 15.0), ("femur",))
+    assert np.allclose(untouched[hand], turned(mc3 - wrist, 15.0)[hand])
+
+
 def test_joint_consistent_keeps_the_solved_pronation():
     """A static whose radius is pronated 40 deg about the ulna (about the radial head) keeps it through
     joint_consistent: the radius shares three joint-centre names with the ulna and used to fall back to
