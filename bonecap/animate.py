@@ -103,13 +103,20 @@ def trial_markers(subject: Subject, trial: Trial, *, path: str | os.PathLike | N
 
 
 def forearm_models(subject: Subject) -> dict[str, Any]:
-    """The subject's forearm model per side: fitted from its forearm stacks, else the paper's."""
+    """The subject's forearm model per side: fitted from its forearm stacks, else the paper's.
+
+    A side without stacks takes the other side's fitted model when there is one (the paper imaged one
+    forearm): its coefficients are side-free (the twist and the turns are positive in pronation on both
+    arms, the control points on segments whose radial-side marker is +1), and the subject's own forearm
+    mirrored is nearer than the paper's subject. On the phantom (seed 1, left forearm, no stacks):
+    radius_l 11.7 deg with the paper's coefficients, 5.4 deg with the right arm's fit.
+    """
     from bonecap.motion.forearm import PAPER_MODEL, ForearmModel
 
+    fitted = {side: ForearmModel.from_dict(d) for side, d in (subject.forearm or {}).items() if d}
     out = {}
-    for side in ("r", "l"):
-        d = (subject.forearm or {}).get(side)
-        out[side] = ForearmModel.from_dict(d) if d else PAPER_MODEL
+    for side, other in (("r", "l"), ("l", "r")):
+        out[side] = fitted.get(side) or fitted.get(other) or PAPER_MODEL
     return out
 
 

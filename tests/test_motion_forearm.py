@@ -218,3 +218,21 @@ def test_fit_on_phantom_mri_poses_and_use_in_lsq(phantom):
     assert clamped[th_trial > 179.0].all() and mo.valid[th_trial > 179.0, i].all()
     assert not clamped[(th_trial > 20) & (th_trial < 120)].any()
     assert mo.valid[(th_trial > 20) & (th_trial < 120), i].all()
+
+
+def test_a_side_without_stacks_takes_the_other_sides_fitted_model():
+    """animate's models: the fitted side's own, the other side mirrored from it, the paper's only when
+    nothing was fitted (on the phantom the right arm's fit put the left radius 5.4 deg off, the paper's
+    coefficients 11.7 deg)."""
+    from types import SimpleNamespace
+
+    from bonecap.animate import forearm_models
+
+    fitted = {**PAPER_MODEL.to_dict(), "radius_rotation": [-0.2, 1.4, 0.0], "side": "r"}
+    models = forearm_models(SimpleNamespace(forearm={"r": fitted}))
+    assert models["r"].radius_rotation == (-0.2, 1.4, 0.0)
+    assert models["l"] == models["r"]
+    both = forearm_models(SimpleNamespace(forearm={"r": fitted, "l": {**fitted, "radius_rotation": [0.0, 1.0, 0.0]}}))
+    assert both["l"].radius_rotation == (0.0, 1.0, 0.0) and both["r"].radius_rotation == (-0.2, 1.4, 0.0)
+    none = forearm_models(SimpleNamespace(forearm={}))
+    assert none["r"] is PAPER_MODEL and none["l"] is PAPER_MODEL
