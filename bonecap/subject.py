@@ -19,7 +19,8 @@ Mapping between the files and our objects
   trial and carried into the reference pose; ``override``: from the user's
   YAML), and ``weight``.
 - ``forearm``: the pronation model per side (see
-  :mod:`bonecap.motion.forearm`), or absent for the paper's defaults (a side without one takes the other side's, see :func:`bonecap.animate.forearm_models`).
+  :mod:`bonecap.motion.forearm`), or absent for the paper's defaults (a side
+  without one takes the other side's: :func:`bonecap.animate.forearm_models`).
 - ``provenance``: the command, inputs, template, marker set and parameters.
 
 ``SUBJECT_DIR/meshes/<bone>.ply`` (and ``<bone>_inner.ply``, ``skin.ply``)
