@@ -363,8 +363,10 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
     direction in the bone frame is the same on every subject, while a
     surface normal at a landmark differs between two bones by tens of
     degrees (the lateral malleolus, the tibial shaft: 20-30 mm of marker
-    placement difference between the phantom and its warped template). Markers given by ``location`` are
-    mapped to the world directly.
+    placement difference between the phantom and its warped template). Markers given by ``location``
+    (an OpenSim MarkerSet's) are points of the template's body, so they scale with it as OpenSim's
+    ScaleTool scales them: the location times the bone's ``metadata["scale_factor"]``
+    (:func:`bonecap.scaling.scale_skeleton`), then mapped to the world.
 
     Parameters
     ----------
@@ -387,7 +389,10 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
     out: dict[str, np.ndarray] = {}
     for bone_name, defs in by_bone.items():
         bone = skeleton.bones[bone_name]
-        local = np.array([m.location if m.location is not None else
+        # unscaled, a location stayed where the template had it: the static fit then read every
+        # scaled bone as too short again and the factors ran up to their limits (pelvis 1.45)
+        scale = float(bone.metadata.get("scale_factor", 1.0))
+        local = np.array([scale * np.asarray(m.location, float) if m.location is not None else
                           (bone.landmarks.get(m.landmark) if m.landmark in bone.landmarks
                            else bone.joint_centres[m.landmark]) for m in defs])
         offsets = np.array([0.0 if m.location is not None else m.offset_mm for m in defs])

@@ -9,13 +9,24 @@ parent's (scaled) joint centre, keeping each joint's reference orientation.
 The factors are fitted to the static trial rather than read from a table of
 marker pairs: with the bones posed to the static markers, the factor that
 best maps a bone's *placed* markers onto its *measured* ones, both taken
-relative to the bone's proximal joint centre, is the least-squares ratio
+relative to the bone's proximal joint centre and projected on the bone's
+length axis ``u``, is the least-squares ratio
 
-.. math::  s_b = \\frac{\\sum_i a_i \\cdot b_i}{\\sum_i a_i \\cdot a_i}
+.. math::  s_b = \\frac{\\sum_i (a_i \\cdot u)(b_i \\cdot u)}{\\sum_i (a_i \\cdot u)^2}
 
 with ``a_i`` the placed and ``b_i`` the measured marker offsets in the bone
-frame. Bones without enough markers along their length take the factor of
-their nearest scaled relative (parent first), then the global factor.
+frame. Only the length counts because a marker's distance from the bone
+across it is soft tissue, which varies from person to person far more than
+the skeleton does: a template whose markers sit 20-50 mm closer to the bone
+than a subject's skin (an OpenSim model's MarkerSet on a well-covered thigh
+or back) had its pelvis, femora and humeri scaled up by 30-45 % when the
+whole offsets were compared. ``u`` runs from the proximal joint centre to the
+bone's distal joint centres (their mean); a bone without a distal joint at
+least ``min_span_mm`` away, or the root, uses the direction of its markers'
+largest spread (the pelvis: across, ASIS to ASIS, as the pairs of
+measurement-based scaling do). Bones without enough markers along their
+length take the factor of their nearest scaled relative (parent first),
+then the global factor.
 
 References
 ----------
@@ -33,7 +44,7 @@ import numpy as np
 from bonecap.model import Bone, Mesh, Skeleton
 from bonecap.skeleton.kinematics import proximal_joint
 
-__all__ = ["scale_skeleton", "similarity_fit", "fit_scale_factors"]
+__all__ = ["scale_skeleton", "similarity_fit", "fit_scale_factors", "length_axis"]
 
 
 def _scaled_mesh(mesh: Mesh | None, s: float) -> Mesh | None:
@@ -96,7 +107,8 @@ def scale_skeleton(skeleton: Skeleton, scales: Mapping[str, float], default: flo
             joint_centres={k: v * s for k, v in b.joint_centres.items()},
             joint_axes=dict(b.joint_axes),
             landmarks={k: v * s for k, v in b.landmarks.items()},
-            metadata={**b.metadata, "scale_factor": s},
+            # cumulative, so that markers given by location (OpenSim's) scale with a twice-scaled bone
+            metadata={**b.metadata, "scale_factor": float(b.metadata.get("scale_factor", 1.0)) * s},
         )
     return Skeleton(bones=out, world=skeleton.world, metadata=dict(skeleton.metadata))
 
@@ -135,9 +147,55 @@ def similarity_fit(source: np.ndarray, target: np.ndarray) -> tuple[float, np.nd
     return scale, T
 
 
+def length_axis(skeleton: Skeleton, bone: str, markers_local: np.ndarray | None = None, *,
+                min_span_mm: float = 60.0) -> np.ndarray:
+    """The unit direction along which a bone's length is measured, in its own frame.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    bone : str
+    markers_local : ndarray (N, 3), optional
+        Markers on the bone (its frame, mm), for bones without a usable joint axis.
+    min_span_mm : float
+        A distal joint centre nearer than this to the proximal one (the ulna's
+        radio-ulnar joint, beside the elbow) does not give the length.
+
+    Returns
+    -------
+    ndarray (3,)
+        From the proximal joint centre towards the mean of the distal joint
+        centres; for the root, or a bone with no distal joint far enough, the
+        principal direction of the markers' spread about their centroid (its
+        sign is arbitrary: only the projection's square and products count);
+        the bone frame's Y (the long axis of ISB frames and OpenSim bodies)
+        when there is neither.
+    """
+    b = skeleton.bones[bone]
+    if b.parent is not None:
+        try:
+            jname, _, c = proximal_joint(skeleton, bone)
+            distal = [np.asarray(p, float) - c for k, p in b.joint_centres.items() if k != jname]
+            distal = [d for d in distal if np.linalg.norm(d) >= min_span_mm]
+            if distal:
+                axis = np.mean(distal, axis=0)
+                if np.linalg.norm(axis) >= min_span_mm:
+                    return axis / np.linalg.norm(axis)
+        except ValueError:
+            pass
+    if markers_local is not None:
+        pts = np.asarray(markers_local, float)
+        pts = pts[np.isfinite(pts).all(1)]
+        if len(pts) >= 2:
+            _, _, vt = np.linalg.svd(pts - pts.mean(0))
+            return vt[0]
+    return np.array([0.0, 1.0, 0.0])
+
+
 def fit_scale_factors(skeleton: Skeleton, marker_bones: list[str], placed_local: np.ndarray,
                       measured_local: np.ndarray, *, min_markers: int = 2, min_span_mm: float = 60.0,
-                      limits: tuple[float, float] = (0.7, 1.4), fallback: float = 1.0) -> dict[str, float]:
+                      limits: tuple[float, float] = (0.7, 1.4), fallback: float = 1.0,
+                      along_length: bool = True) -> dict[str, float]:
     """Per-bone length factors from placed vs measured marker positions in the bone frames.
 
     Parameters
@@ -158,6 +216,10 @@ def fit_scale_factors(skeleton: Skeleton, marker_bones: list[str], placed_local:
         Factors are clipped to this range (a bad marker must not halve a bone).
     fallback : float
         Factor for bones that get none from markers or relatives.
+    along_length : bool
+        Compare the offsets along the bone's length axis only
+        (:func:`length_axis`; the default, see the module notes); False compares
+        the whole offsets.
 
     Returns
     -------
@@ -179,9 +241,16 @@ def fit_scale_factors(skeleton: Skeleton, marker_bones: list[str], placed_local:
         a = placed_local[idx] - c
         m = measured_local[idx] - c
         ok = np.isfinite(a).all(1) & np.isfinite(m).all(1)
-        if ok.sum() < min_markers or np.linalg.norm(a[ok], axis=1).max() < min_span_mm:
+        if ok.sum() < min_markers:
             continue
-        s = float((a[ok] * m[ok]).sum() / (a[ok] * a[ok]).sum())
+        if along_length:
+            u = length_axis(skeleton, name, placed_local[idx][ok], min_span_mm=min_span_mm)
+            a, m = (a[ok] @ u)[:, None], (m[ok] @ u)[:, None]
+        else:
+            a, m = a[ok], m[ok]
+        if np.abs(a).max() < min_span_mm and np.linalg.norm(a, axis=1).max() < min_span_mm:
+            continue
+        s = float((a * m).sum() / (a * a).sum())
         own[name] = float(np.clip(s, *limits))
     out: dict[str, float] = {}
     children: dict[str, list[str]] = {}

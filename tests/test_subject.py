@@ -139,3 +139,37 @@ def test_fit_scale_factors_recovers_lengths():
     # a wild marker is clipped to the limits
     measured[3:5] *= 3
     assert fit_scale_factors(sk, bones, placed, measured)["shank"] == pytest.approx(1.4)
+
+
+def test_fit_scale_factors_reads_length_not_soft_tissue():
+    """Markers 30 mm farther from the bone than the template put them (thicker soft tissue) do not
+    lengthen it: only the offsets along the bone's length (hip -> knee) count, and the pelvis (the
+    root) is measured across, along its markers' widest spread. Whole offsets read the same case as
+    a longer thigh, the measure that scaled an OpenSim model's femora 30 % up."""
+    sk = chain()
+    bones = ["thigh", "thigh", "thigh", "pelvis", "pelvis", "pelvis", "pelvis"]
+    placed = np.array([[40, -150, 0], [45, -390, 10], [-40, -300, 5],
+                       [60, 5, 120], [60, 5, -120], [-80, 20, 40], [-80, 20, -40]], float)
+    measured = placed.copy()
+    measured[:3, 1] *= 1.05                       # the thigh 5 % longer ...
+    measured[:3, 0] += 30 * np.sign(placed[:3, 0])  # ... under 30 mm more soft tissue
+    measured[3:, 0] += 30 * np.sign(placed[3:, 0])  # the pelvis as wide, its markers 30 mm out in front/back
+    s = fit_scale_factors(sk, bones, placed, measured)
+    assert s["thigh"] == pytest.approx(1.05, abs=0.005)
+    assert s["pelvis"] == pytest.approx(1.0, abs=0.005)
+    whole = fit_scale_factors(sk, bones, placed, measured, along_length=False)
+    assert whole["thigh"] > 1.06 and whole["pelvis"] > 1.1
+
+
+def test_location_markers_scale_with_their_bone():
+    """An OpenSim marker (a location in its body) moves with the scaled body, also when scaled twice."""
+    from bonecap.markers import MarkerDef, MarkerSet, place_markers
+
+    sk = chain()
+    mset = MarkerSet("osim", {"KNEE": MarkerDef(name="KNEE", bone="thigh", location=np.array([20.0, -380.0, 45.0]),
+                                                tracks=["thigh"])})
+    twice = scale_skeleton(scale_skeleton(sk, {"thigh": 1.1}), {"thigh": 0.9})
+    for skel, f in ((sk, 1.0), (scale_skeleton(sk, {"thigh": 1.1}), 1.1), (twice, 0.99)):
+        T = skel.bones["thigh"].bone_to_world
+        local = (place_markers(mset, skel)["KNEE"] - T[:3, 3]) @ T[:3, :3]
+        np.testing.assert_allclose(local, f * np.array([20.0, -380.0, 45.0]), atol=1e-9)
