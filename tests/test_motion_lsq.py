@@ -199,3 +199,65 @@ def test_phantom_trials_against_truth(phantom):
             assert np.nanmedian(deg) < limit, (trial, bone, np.nanmedian(deg))
             mm = np.linalg.norm(mo.transforms[:, i, :3, 3] - d["transforms"][:, i, :3, 3], axis=1)
             assert np.nanmedian(mm) < 3.0, (trial, bone, np.nanmedian(mm))
+
+
+def arm_skeleton(elbow="elbow_r"):
+    """humerus -> ulna -> radius along -z, the elbow a hinge about x (when named as one), the radius on the
+    ulna at 'radioulnar_r' with its own axis along the forearm (mm, frames = world at rest)."""
+    def T(z):
+        M = np.eye(4)
+        M[2, 3] = z
+        return M
+    bones = {
+        "humerus_r": Bone("humerus_r", None, bone_to_world=T(1400),
+                          joint_centres={elbow: [0, 0, -300]}, joint_axes={elbow: [1, 0, 0]}),
+        "ulna_r": Bone("ulna_r", "humerus_r", bone_to_world=T(1100),
+                       joint_centres={elbow: [0, 0, 0], "radioulnar_r": [0, 25, -10]},
+                       joint_axes={elbow: [1, 0, 0], "radioulnar_r": [0, 0, 1]}),
+        "radius_r": Bone("radius_r", "ulna_r", bone_to_world=T(1090),
+                         joint_centres={"radioulnar_r": [0, 25, 0]}, joint_axes={"radioulnar_r": [0, 0, 1]}),
+    }
+    return Skeleton(bones, world="model")
+
+
+def test_hinge_elbow_holds_an_ulna_with_one_marker():
+    """The ulna with one marker rides a hinge: its flexion is solved, it does not turn with the radius;
+    through the radio-ulnar hinge the radius's two wrist markers give the ulna's flexion too. Named as
+    a ball joint (not in HINGE_JOINTS) the same ulna cannot carry itself and rides on the humerus; with
+    two markers it needs no hinge and gets none."""
+    from bonecap.motion.lsq import HINGE_LEVER_MM
+
+    assert HINGE_LEVER_MM > 0
+    mb = ["humerus_r"] * 3 + ["ulna_r"] + ["radius_r"] * 2
+    local = np.array([[40, 0, -100], [-40, 10, -200], [0, 45, -280],     # humerus: determined alone
+                      [0, -30, -80],                                       # ulna: one marker
+                      [0, 45, -230], [0, -20, -235]], float)               # radius: two at the wrist
+    F = 40
+    t = np.linspace(0, 1, F)
+    flex = np.radians(100 * t)                     # elbow flexion about x
+    pron = np.radians(150 * t)                     # radius about the forearm axis (z)
+    skel = arm_skeleton()
+    hum = np.tile(np.eye(4), (F, 1, 1))
+    hum[:, :3, :3] = Rotation.from_rotvec(np.c_[0.2 * t, 0.3 * t, 0.5 * t]).as_matrix()
+    hum[:, :3, 3] = [100, 200, 1400]
+    T = pose_skeleton(skel, hum, {"ulna_r": np.c_[flex, 0 * t, 0 * t], "radius_r": np.c_[0 * t, 0 * t, pron]})
+    Tb = T[:, [skel.names.index(b) for b in mb]]
+    meas = np.einsum("fmij,mj->fmi", Tb[..., :3, :3], local) + Tb[..., :3, 3]
+    plan = plan_segments(skel, mb)
+    assert plan.roots() == ["humerus_r", "ulna_r", "radius_r"]
+    assert plan.segments[1].axis_in_self is not None and len(plan.segments[1].links()) == 3
+    mo = solve_lsq(skel, mb, local, meas, n_sweeps=30)
+    assert mo.valid.all()
+    err = rotation_angle_deg(mo.transforms, T)
+    assert err.max() < 0.5, err.max(axis=0)
+    # the ulna's one marker 15 mm off: the radius's markers still flex it right, through the hinges
+    off = local.copy()
+    off[3] += [0, 15, 0]
+    mo = solve_lsq(skel, mb, off, meas, n_sweeps=30)
+    assert np.median(rotation_angle_deg(mo.transforms[:, 1], T[:, 1])) < 4.0
+    # without hinges: the one-marker ulna is not a segment of its own
+    plain = arm_skeleton(elbow="cubital")
+    assert plan_segments(plain, mb).segment_of["ulna_r"] == 0
+    # an ulna its two markers hold keeps ball joints (no hinge at the elbow or the radio-ulnar joint)
+    two = plan_segments(skel, mb[:4] + ["ulna_r"] + mb[4:])
+    assert [len(seg.links()) for seg in two.segments] == [0, 1, 1]

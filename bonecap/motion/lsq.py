@@ -14,7 +14,12 @@ segment shares with a neighbour (its proximal joint with its parent, the
 proximal joints of its children), a soft ball joint: the two bones' copies of
 the joint centre are pulled together with a stiffness ``k`` counted in
 *marker equivalents* (``joint_weight``; a joint weighs as much as ``k``
-markers of weight 1). The sum over all segments is the global objective of Lu
+markers of weight 1). A hinge (:data:`~bonecap.skeleton.kinematics.HINGE_JOINTS`,
+the elbow, where the bones give its axis, and only for a bone with fewer
+than two markers of its own and its children) adds two more such pairs, the
+points ``HINGE_LEVER_MM`` either side of the centre on the axis: the child
+then keeps the axis and only flexes about it, and one marker off the axis
+determines it (the ulna's). The sum over all segments is the global objective of Lu
 & O'Connor (1999) with the joint constraints made soft. It is minimised by
 block-coordinate descent: each sweep visits the segments (top-down, then
 bottom-up on the next sweep) and refits one segment with its neighbours held,
@@ -67,7 +72,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Motion, Skeleton
-from bonecap.skeleton.kinematics import PIVOT_JOINTS
+from bonecap.skeleton.kinematics import HINGE_JOINTS, PIVOT_JOINTS
 
 __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_markers", "DEFAULT_JOINT_WEIGHT"]
 
@@ -79,6 +84,9 @@ DEFAULT_JOINT_WEIGHT = 10.0
 # the radius turns on the ulna about the radial head (see PIVOT_JOINTS)
 _PREFERRED_JOINTS = PIVOT_JOINTS
 _MIN_SPREAD = 1e-3  # as bonecap.motion.rigid: sqrt(s2/s1) below this is collinear
+#: Distance (mm) of a hinge's two axis points from its centre: about the elbow's width, so that
+#: the axis weighs like the markers 100-250 mm down the forearm.
+HINGE_LEVER_MM = 40.0
 
 
 # ----------------------------------------------------------------------------- segments
@@ -102,6 +110,9 @@ class Segment:
         That joint centre in this segment's frame and in the parent segment's frame (mm).
     rest_to_root : dict of str -> ndarray (4, 4)
         Each member's frame -> the root's frame at the reference pose.
+    axis_in_self, axis_in_parent : ndarray (3,) or None
+        Where ``joint`` is a hinge: its unit axis in this segment's frame and in the
+        parent segment's frame (the same line at the reference pose).
     """
 
     root: str
@@ -111,6 +122,20 @@ class Segment:
     joint_in_self: np.ndarray | None
     joint_in_parent: np.ndarray | None
     rest_to_root: dict
+    axis_in_self: np.ndarray | None = None
+    axis_in_parent: np.ndarray | None = None
+
+    def links(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The points tying this segment to its parent, as (in self, in parent) pairs: the joint
+        centre, and for a hinge the two points :data:`HINGE_LEVER_MM` either side of it on the axis."""
+        if self.joint is None:
+            return []
+        out = [(self.joint_in_self, self.joint_in_parent)]
+        if self.axis_in_self is not None:
+            for sign in (1.0, -1.0):
+                out.append((self.joint_in_self + sign * HINGE_LEVER_MM * self.axis_in_self,
+                            self.joint_in_parent + sign * HINGE_LEVER_MM * self.axis_in_parent))
+        return out
 
 
 @dataclass(frozen=True)
@@ -144,6 +169,29 @@ def _shared_joint(skeleton: Skeleton, bone: str, joints: Mapping[str, str]) -> s
     return shared[0]
 
 
+def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray | None:
+    """The unit axis (in ``bone``'s frame) of the hinge ``joint`` tying ``bone`` to its parent, or None.
+
+    The parent's axis is preferred, carried into the bone's frame at the reference pose, so that
+    both copies are one line there; a bone's own axis serves when the parent gives none."""
+    if joint is None:
+        return None
+    base = joint[:-2] if joint.endswith(("_r", "_l")) else joint
+    if base not in HINGE_JOINTS:
+        return None
+    b = skeleton.bones[bone]
+    parent = skeleton.bones[b.parent]
+    if joint in parent.joint_axes:
+        R = b.bone_to_world[:3, :3].T @ parent.bone_to_world[:3, :3]
+        a = R @ np.asarray(parent.joint_axes[joint], float)
+    elif joint in b.joint_axes:
+        a = np.asarray(b.joint_axes[joint], float)
+    else:
+        return None
+    n = np.linalg.norm(a)
+    return a / n if n > 0 else None
+
+
 def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                   segments: Mapping[str, str] | None = None, joints: Mapping[str, str] | None = None,
                   own_pose: Sequence[str] = ()) -> SegmentPlan:
@@ -152,7 +200,9 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     Default rule, bottom-up over the tree: a bone gets a pose of its own (is a
     segment root) when its markers -- its own plus those of descendants that
     ride on it -- determine it: at least 2 with a joint centre shared with its
-    parent (the joint is the third point), at least 3 without. A bone without
+    parent (the joint is the third point), 1 with a hinge (:meth:`Segment.links`;
+    a hinge of :data:`~bonecap.skeleton.kinematics.HINGE_JOINTS` acts only where
+    one of its two bones has fewer than 2 markers of its own), at least 3 without. A bone without
     markers whose children are segment roots takes them over (a talus carries
     calcaneus and foot, carpals carry the rays, marker-less vertebrae carry
     the spine above them), because a joint between marker-less bones cannot
@@ -192,6 +242,16 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
         if p is not None:
             kids[p].append(n)
     joint = {n: _shared_joint(skeleton, n, joints) for n in names}
+    own = {n: 0 for n in names}
+    for b in marker_bones:
+        own[b] += 1
+    # Hinges only where a bone's markers cannot hold it on ball joints (fewer than two): then its
+    # proximal hinge and the hinges of its children carry it. A bone its markers do hold keeps its
+    # ball joints: an MRI subject's elbow axis a few degrees off the true one turned a two-marker
+    # ulna 1-4 degrees further off than its markers alone (phantom seed 1).
+    can_hinge = {n: _hinge_axis(skeleton, n, joint[n]) is not None for n in names}
+    weak = {n for n in names if can_hinge[n] and own[n] < 2}
+    hinged = {n for n in names if can_hinge[n] and (n in weak or skeleton.bones[n].parent in weak)}
 
     if segments is not None:
         seg_root = {n: str(segments.get(n, n)) for n in names}
@@ -202,13 +262,12 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
             if seg_root.get(b) != b:
                 raise ValueError(f"bone {b!r} must be its own segment root (it is driven by a model)")
     else:
-        own = {n: 0 for n in names}
-        for b in marker_bones:
-            own[b] += 1
         pending = dict(own)
         is_root: dict[str, bool] = {}
 
         def determined(n_markers, bone):
+            if bone in hinged:
+                return n_markers >= 1
             return n_markers >= 3 or (joint[bone] is not None and n_markers >= 2)
 
         for b in reversed(names):
@@ -243,12 +302,17 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
         pb = skeleton.bones[r].parent
         parent = -1 if pb is None else index[seg_root[pb]]
         j = joint[r] if parent >= 0 else None
-        j_self = j_par = None
+        j_self = j_par = a_self = a_par = None
         if j is not None:
             j_self = skeleton.bones[r].joint_centres[j]
             P = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, skeleton.bones[pb].bone_to_world)
             j_par = P[:3, :3] @ skeleton.bones[pb].joint_centres[j] + P[:3, 3]
-        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest))
+            a_self = _hinge_axis(skeleton, r, j) if r in hinged else None
+            if a_self is not None:
+                # the same line in the parent segment's frame at the reference pose
+                a_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world[:3, :3],
+                                        skeleton.bones[r].bone_to_world[:3, :3] @ a_self)
+        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest, a_self, a_par))
     return SegmentPlan(segs, {n: index[seg_root[n]] for n in names})
 
 
@@ -561,9 +625,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     for s, seg in enumerate(segs):
         ms = seg_markers[s]
         pts = [_apply(seg.rest_to_root[marker_bones[m]], local[m]) for m in ms]
-        if seg.joint is not None:
-            pts.append(seg.joint_in_self)
-        pts += [segs[c].joint_in_parent for c in children[s] if segs[c].joint is not None]
+        pts += [p_self for p_self, _ in seg.links()]
+        pts += [p_par for c in children[s] for _, p_par in segs[c].links()]
         seg_local.append(np.array(pts).reshape(-1, 3))
 
     T = np.full((S, F, 4, 4), np.nan)
@@ -628,12 +691,10 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
             # joint pseudo-markers where the neighbours put them; none where a neighbour
             # is not solved in a frame (weight 0), none from a model-placed radius onto
             # the ulna it was placed on
-            pseudo = []
-            if seg.joint is not None:
-                pseudo.append((T[seg.parent], seg.joint_in_parent, joint_weight))
+            pseudo = [(T[seg.parent], p_par, joint_weight) for _, p_par in seg.links()]
             for c in children[s]:
-                if segs[c].joint is not None:
-                    pseudo.append((T[c], segs[c].joint_in_self, 0.0 if segs[c].root in fixed else joint_weight))
+                wc = 0.0 if segs[c].root in fixed else joint_weight
+                pseudo += [(T[c], p_self, wc) for p_self, _ in segs[c].links()]
             for Tn, point, wj in pseudo:
                 target = _apply(Tn, point)
                 good = np.isfinite(target).all(axis=1)
@@ -652,7 +713,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     for s in free:
         n_points = np.count_nonzero(w_vis[:, seg_markers[s]], axis=1)
         if segs[s].joint is not None and segs[s].parent >= 0:
-            n_points = n_points + ok[segs[s].parent]
+            n_points = n_points + len(segs[s].links()) * ok[segs[s].parent]
         ok[s] &= n_points >= 3
         T[s][~ok[s]] = np.nan
 

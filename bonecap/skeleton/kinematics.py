@@ -22,13 +22,27 @@ from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["proximal_joint", "pose_skeleton", "PIVOT_JOINTS"]
+__all__ = ["proximal_joint", "pose_skeleton", "PIVOT_JOINTS", "HINGE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
 #: with the ulna; it turns about the axis through the radial head, whose centre the
 #: generic skeleton names "proximal_radioulnar" -- the other two slide by design.
 PIVOT_JOINTS = ("proximal_radioulnar",)
+
+#: Joints that are hinges (one rotational degree of freedom about the axis the bones give in
+#: ``joint_axes``), by name without the side suffix. The humero-ulnar joint is one (a pin joint
+#: in OpenSim's arm models, the phantom's elbow): the ulna flexes on the humerus and does not
+#: turn with the radius. Its markers are few (one in the Rajagopal model's MarkerSet, the
+#: ulnar styloid in Plug-in Gait), so without the hinge nothing holds its twist. The radius
+#: turns on the ulna about the radio-ulnar axis (OpenSim's ``radioulnar`` pin joint; the axis
+#: migrates by a few millimetres, Kojima et al.), so through that hinge the radius's wrist
+#: markers also set the ulna's flexion, which its one marker over the proximal shaft, 10-15 mm
+#: from where a template puts it, set 12-16 degrees off. The generic skeleton's radius pivots at
+#: ``proximal_radioulnar``, which has no axis of that name: the forearm model drives it there.
+#: The solver uses a hinge only where a bone's markers cannot hold it on ball joints
+#: (:func:`bonecap.motion.lsq.plan_segments`).
+HINGE_JOINTS = ("elbow", "radioulnar")
 
 
 def proximal_joint(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) -> tuple[str, np.ndarray, np.ndarray]:
