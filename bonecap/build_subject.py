@@ -115,9 +115,14 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
 
 #: The foot (talus, carrying calcaneus and foot in the solve): its roll about the long axis of the foot,
 #: ankle centre -> head of the 2nd metatarsal (the toe marker's landmark), as Plug-in Gait defines it.
-FOOT_PREFIXES = ("talus", "calcaneus", "foot")
-FOOT_AXES: dict[str, tuple[str, str] | None] = {"talus": ("foot", "metatarsal2_head"), "calcaneus": None,
-                                                 "foot": None}
+#: OpenSim's foot bodies (talus, calcn, toes) have no landmarks: there the axis ends at the
+#: metatarsophalangeal joint centre of the calcaneus body (the toes' joint). Their static foot,
+#: left to its heel, toe and 5th metatarsal markers (a toe marker 12 mm lower on the skin than the
+#: model has it), was 3-5 degrees off on the Rajagopal phantoms, 1.8-2.5 with the roll from the shank.
+FOOT_PREFIXES = ("talus", "calcaneus", "foot", "calcn", "toes")
+FOOT_AXES: dict[str, list[tuple[str, str]] | None] = {
+    "talus": [("foot", "metatarsal2_head"), ("calcn", "mtp")],
+    "calcaneus": None, "foot": None, "calcn": None, "toes": None}
 
 
 #: The hand: its twist about its long axis (wrist -> head of the 3rd metacarpal, Wu et al. 2005) is the
@@ -125,11 +130,11 @@ FOOT_AXES: dict[str, tuple[str, str] | None] = {"talus": ("foot", "metatarsal2_h
 #: lie ~20 mm apart across the hand, so 10-20 mm of their placement turned a phantom's static hand by
 #: 6-19 degrees. The rays ride on the carpals (the solver carries them as one segment).
 HAND_PREFIXES = ("carpals", "ray")
-HAND_AXES: dict[str, tuple[str, str] | None] = {"carpals": ("ray3", "metacarpal_head"), "ray": None}
+HAND_AXES: dict[str, list[tuple[str, str]] | None] = {"carpals": [("ray3", "metacarpal_head")], "ray": None}
 
 
 def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tibia", "humerus"),
-                  axes: dict[str, tuple[str, str]] | None = None) -> np.ndarray:
+                  axes: dict[str, list[tuple[str, str]] | None] | None = None) -> np.ndarray:
     """Give the long bones of a static pose the reference twist relative to their parents.
 
     A femur, tibia or humerus carries two markers in Plug-in Gait (one of them
@@ -159,10 +164,12 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     prefixes : tuple of str
         Bones (name prefixes) to correct.
     axes : dict, optional
-        Per bone prefix, the ``(bone prefix, landmark)`` that ends its long axis
-        (from its proximal joint centre, same side), or ``None`` for a bone that
-        rides on its parent at the reference relative pose (as the solver
-        carried it); default: its farthest joint centre.
+        Per bone prefix, a list of ``(bone prefix, point)`` of which the first the
+        skeleton has ends its long axis (from its proximal joint centre, same side;
+        the point a landmark, or a joint centre named with or without the side
+        suffix), or ``None`` for a bone that rides on its parent at the reference
+        relative pose (as the solver carried it); default: its farthest joint
+        centre.
 
     Returns
     -------
@@ -190,11 +197,14 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         spec = axes[key] if key is not None else None
         if key is not None and spec is None:
             others = []                        # rides on its parent (calcaneus and foot on the talus)
-        if spec is not None:
-            other = spec[0] + n[-2:] if n.endswith(("_l", "_r")) else spec[0]
-            ob = skeleton.bones.get(other)
-            if ob is not None and spec[1] in ob.landmarks:
-                others = [np.linalg.solve(b.bone_to_world, np.r_[ob.landmark_in_world(spec[1]), 1.0])[:3]]
+        for bone_prefix, point in spec or []:
+            suffix = n[-2:] if n.endswith(("_l", "_r")) else ""
+            ob = skeleton.bones.get(bone_prefix + suffix)
+            name = next((k for k in (point, point + suffix) if ob is not None and k in ob.landmarks | ob.joint_centres),
+                        None)
+            if name is not None:
+                others = [np.linalg.solve(b.bone_to_world, np.r_[ob.landmark_in_world(name), 1.0])[:3]]
+                break
         rel_ref = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
         if not others:
             # a rider, or nothing to give it a long axis: it keeps its reference pose relative to its

@@ -233,6 +233,27 @@ def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
     assert _largest_turn_deg(kept, flexed, foot) < 0.01
 
 
+def test_opensim_foot_rolls_with_the_shank_about_ankle_to_mtp(shared_data):
+    """An OpenSim model's foot (talus, calcn, toes: no landmarks) takes the roll of the foot's long axis
+    (ankle -> the calcaneus body's metatarsophalangeal joint) from the shank; its flexion is kept."""
+    import numpy as np
+
+    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES, neutral_twist
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template(shared_data / "bones/opensim/models/Rajagopal2016.osim")
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    foot = [sk.names.index(n) for n in ("talus_r", "calcn_r", "toes_r")]
+    ankle = sk.bones["talus_r"].landmark_in_world("ankle_r")
+    mtp = sk.bones["calcn_r"].landmark_in_world("mtp_r")
+    fixed = neutral_twist(sk, _turned_about(ref, foot, ankle, mtp - ankle, 20.0), FOOT_PREFIXES, FOOT_AXES)
+    assert _largest_turn_deg(fixed, ref, foot) < 0.01
+    u = (mtp - ankle) / np.linalg.norm(mtp - ankle)
+    z = np.array([0.0, 0.0, 1.0])
+    flexed = _turned_about(ref, foot, ankle, z - (z @ u) * u, 15.0)   # a swing about ~Z, no roll
+    assert _largest_turn_deg(neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES), flexed, foot) < 0.5
+
+
 def test_the_hand_takes_its_twist_from_the_radius_but_its_flexion_from_the_markers():
     """neutral_twist with the hand axes: a static hand turned about its long axis (wrist -> head of the
     3rd metacarpal) gets the reference twist back, the rays riding on the carpals; a palmar flexion
