@@ -74,6 +74,29 @@ def test_qcp_matches_svd_fit():
     assert np.abs(Rn - fit_rigid(P[1:], Q[:, 1:], w[:, 1:]).transforms[:, :3, :3]).max() < 1e-8
 
 
+def test_qcp_batch_of_segments_equals_one_by_one():
+    """Several segments in one batched fit (padded with weight-0 points to a common K) give each
+    segment's own fit: the red-black sweeps rely on it."""
+    rng = np.random.default_rng(5)
+    Ks, F = (4, 6, 3), 30
+    Ps = [rng.normal(0, 60, (k, 3)) for k in Ks]
+    Qs = [np.einsum("fij,kj->fik", Rotation.random(F, random_state=i).as_matrix(), P)
+          + rng.normal(0, 500, (F, 3, 1)) + rng.normal(0, 1, (F, 3, len(P))) for i, P in enumerate(Ps)]
+    ws = [rng.uniform(0.5, 2, (F, k)) for k in Ks]
+    ws[2][:5, 0] = 0.0                        # two points left in 5 frames of the third: invalid there
+    Kmax = max(Ks)
+    Pg, Qg, Wg = np.zeros((3, Kmax, 3)), np.full((3, F, 3, Kmax), 7.0), np.zeros((3, F, Kmax))
+    for i, (P, Q, w) in enumerate(zip(Ps, Qs, ws)):
+        Pg[i, :len(P)], Qg[i, :, :, :len(P)], Wg[i, :, :len(P)] = P, Q, w
+    R, t, v = _fit_qcp(Pg, Qg, Wg)
+    assert R.shape == (3, F, 3, 3) and t.shape == (3, F, 3) and v.shape == (3, F)
+    for i, (P, Q, w) in enumerate(zip(Ps, Qs, ws)):
+        Ri, ti, vi = _fit_qcp(P, Q, w)
+        assert (v[i] == vi).all()
+        assert np.abs(R[i][vi] - Ri[vi]).max() < 1e-9 and np.abs(t[i][vi] - ti[vi]).max() < 1e-6
+    assert not v[2, :5].any() and v[2, 5:].all()
+
+
 def test_plan_segments_rules():
     skel = chain_skeleton()
     plan = plan_segments(skel, MARKER_BONES)

@@ -21,11 +21,17 @@ points ``HINGE_LEVER_MM`` either side of the centre on the axis: the child
 then keeps the axis and only flexes about it, and one marker off the axis
 determines it (the ulna's). The sum over all segments is the global objective of Lu
 & O'Connor (1999) with the joint constraints made soft. It is minimised by
-block-coordinate descent: each sweep visits the segments (top-down, then
-bottom-up on the next sweep) and refits one segment with its neighbours held,
-which is a weighted rigid fit of its markers plus one pseudo-marker per joint
-placed where the neighbour has the joint -- a closed-form problem solved for
-every frame at once. The sweeps never increase the objective. Along weakly
+block-coordinate descent: a segment refitted with its neighbours held is a
+weighted rigid fit of its markers plus one pseudo-marker per joint placed
+where the neighbour has the joint -- a closed-form problem solved for every
+frame at once. The first sweep visits the segments top-down, one at a time,
+so that each starts from a solved parent; the later sweeps go in red-black
+order: the segments at even depths in the tree share no joint with each
+other, nor do those at odd depths, so each colour is refitted in one batched
+fit of all its segments and frames (the colours alternate). The sweeps never
+increase the objective. Batching halved the solve time of the Rajagopal
+model's 14 segments (2 130 -> 4 460 frames per CPU second on the phantom's
+trials, same errors against the truth to 0.02 degree). Along weakly
 determined directions (the axial twist of a shank with two markers) the
 descent is slow: on the phantom's trials 6 sweeps (the default) give the
 same median / p95 bone errors as 30 within ~0.03 / 0.2 degree, while single
@@ -37,7 +43,7 @@ the largest eigenvalue found by Newton's method on the characteristic
 polynomial (the QCP method of Theobald 2005): sums over points are matrix
 products, the rest elementwise arithmetic on per-frame arrays -- no
 per-frame LAPACK call (3-4x faster here than numpy's batched 3x3 SVD) and no
-Python loop over frames (loops run over segments and sweeps only).
+Python loop over frames (loops run over segments, colours and sweeps only).
 
 Gaps: a segment that has fewer than three usable points (markers plus joint
 pseudo-markers, not collinear) in a frame is filled from its neighbours:
@@ -330,12 +336,14 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
 
     Parameters
     ----------
-    P : ndarray (K, 3)
-        Local points, the same in every frame.
-    Q : ndarray (F, 3, K)
+    P : ndarray (K, 3) or (G, K, 3)
+        Local points, the same in every frame; with a leading axis, ``G``
+        independent fits at once (several segments, padded with points of
+        weight 0 to a common ``K``).
+    Q : ndarray (F, 3, K) or (G, F, 3, K)
         Lab points, **coordinates first** and finite: a missing point has
         weight 0 and any finite value (the caller zeroes them once per trial).
-    w : ndarray (F, K)
+    w : ndarray (F, K) or (G, F, K)
         Weights >= 0.
 
     Returns
@@ -343,28 +351,36 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
     R (F, 3, 3), t (F, 3), valid (F,)
         ``valid``: at least 3 points of positive weight, not collinear
         (``sqrt(s2 / s1) >= 1e-3`` of the local scatter, as :mod:`bonecap.motion.rigid`).
+        With ``G`` fits: (G, F, 3, 3), (G, F, 3), (G, F).
 
     Notes
     -----
     Sums over points are matrix products with the constant ``P`` (BLAS); the
     rest is elementwise on (F,) arrays -- no per-frame LAPACK call.
     """
-    F, _, K = Q.shape
+    single = P.ndim == 2
+    if single:
+        P, Q, w = P[None], Q[None], w[None]
+    G, F0, _, K = Q.shape
     W = w.sum(-1)
-    wn = w / np.where(W > 0, W, 1.0)[:, None]
-    cp = wn @ P                                   # (F, 3)
-    cq = np.einsum("fik,fk->fi", Q, wn)           # (F, 3)
-    Qc = Q - cq[:, :, None]
-    WQc = Qc * wn[:, None, :]
+    wn = w / np.where(W > 0, W, 1.0)[..., None]
+    cp = wn @ P                                   # (G, F, 3)
+    cq = np.einsum("gfik,gfk->gfi", Q, wn)        # (G, F, 3)
+    Qc = Q - cq[..., None]
+    WQc = Qc * wn[:, :, None, :]
     # S = sum_k w_k (p_k - cp)(q_k - cq)^T = sum_k w_k p_k (q_k - cq)^T  (sum_k w_k (q_k - cq) = 0)
-    S = (WQc.reshape(F * 3, K) @ P).reshape(F, 3, 3).transpose(0, 2, 1)  # S[f, i, j] = sum w p_i qc_j
-    PP = (P[:, :, None] * P[:, None, :]).reshape(K, 9)
-    C = (wn @ PP).reshape(F, 3, 3) - cp[:, :, None] * cp[:, None, :]
+    S = (WQc.reshape(G, F0 * 3, K) @ P).reshape(G, F0, 3, 3).transpose(0, 1, 3, 2)  # S[.., i, j] = sum w p_i qc_j
+    PP = (P[:, :, :, None] * P[:, :, None, :]).reshape(G, K, 9)
+    C = (wn @ PP).reshape(G, F0, 3, 3) - cp[..., :, None] * cp[..., None, :]
+    # from here on every fit's frames are one batch
+    F = G * F0
+    S, C, cp, cq = S.reshape(F, 3, 3), C.reshape(F, 3, 3), cp.reshape(F, 3), cq.reshape(F, 3)
+    WQc, Qc = WQc.reshape(F, 3, K), Qc.reshape(F, 3, K)
     trC = C[:, 0, 0] + C[:, 1, 1] + C[:, 2, 2]
     e2 = 0.5 * (trC ** 2 - np.einsum("fij,fij->f", C, C))  # l1 l2 + l1 l3 + l2 l3
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = np.sqrt(np.clip(e2, 0, None)) / trC
-    valid = (np.count_nonzero(w, axis=-1) >= 3) & (trC > 0) & (spread >= _MIN_SPREAD)
+    valid = (np.count_nonzero(w, axis=-1).reshape(F) >= 3) & (trC > 0) & (spread >= _MIN_SPREAD)
 
     Sxx, Sxy, Sxz = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
     Syx, Syy, Syz = S[:, 1, 0], S[:, 1, 1], S[:, 1, 2]
@@ -423,7 +439,9 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
     R[:, 2, 1] = 2 * (c * d + a0 * b)
     R[:, 2, 2] = a0 * a0 - b * b - c * c + d * d
     t = cq - (R @ cp[:, :, None])[:, :, 0]
-    return R, t, valid
+    if single:
+        return R, t, valid
+    return R.reshape(G, F0, 3, 3), t.reshape(G, F0, 3), valid.reshape(G, F0)
 
 
 def _det3s(m):
@@ -543,7 +561,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         Stiffness of every joint in marker equivalents (see the module
         documentation); 0 uncouples the segments (a per-segment rigid fit).
     n_sweeps : int, default 6
-        Block-coordinate sweeps (alternately top-down and bottom-up).
+        Block-coordinate sweeps (the first top-down, then red-black).
     max_gap_frames : int, default 10
         Longest run of frames over which a segment that cannot be solved is
         interpolated (relative to its parent); longer runs are NaN and invalid.
@@ -631,8 +649,6 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
 
     T = np.full((S, F, 4, 4), np.nan)
     free = list(range(S))
-    order_down = free
-    order_up = free[::-1]
     sweeps = range(int(n_sweeps))
     if progress:
         from bonecap.progress import progress as _bar
@@ -643,20 +659,56 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     visible = np.isfinite(meas).all(axis=-1)
     w_vis = np.where(visible, w_markers, 0.0)
     meas_t = np.ascontiguousarray(np.where(visible[..., None], meas, 0.0).transpose(0, 2, 1))
-    # per segment: a (F, 3, K) target buffer and (F, K) weights, markers filled once
-    bufs = []
-    for s_, seg in enumerate(segs):
-        K = len(seg_local[s_])
-        ms = seg_markers[s_]
-        Q = np.zeros((F, 3, K))
-        Wt = np.zeros((F, K))
-        Q[:, :, :len(ms)] = meas_t[:, :, ms]
-        Wt[:, :len(ms)] = w_vis[:, ms]
-        bufs.append((Q, Wt))
+    # Red-black order: segments at even and at odd depths in the tree share no joint, so each
+    # colour's segments are refitted at once in one batched fit (padded to a common number of
+    # points); the sweeps alternate the colours. The first sweep goes top-down one segment at a
+    # time, so that every segment starts from a solved parent.
+    depth = []
+    for seg in segs:                              # parent before child
+        depth.append(0 if seg.parent < 0 else depth[seg.parent] + 1)
+    colours = [[s_ for s_ in range(S) if depth[s_] % 2 == c] for c in (0, 1)]
+    colours = [c for c in colours if c]
+    # per colour: a (G, F, 3, Kmax) target buffer and (G, F, Kmax) weights, markers filled once;
+    # each segment's (F, 3, K) and (F, K) buffers are views into them
+    bufs: list = [None] * S
+    batches = []
+    for group in colours:
+        Kmax = max(len(seg_local[s_]) for s_ in group)
+        Pg = np.zeros((len(group), Kmax, 3))
+        Qg = np.zeros((len(group), F, 3, Kmax))
+        Wg = np.zeros((len(group), F, Kmax))
+        for i, s_ in enumerate(group):
+            K = len(seg_local[s_])
+            ms = seg_markers[s_]
+            Pg[i, :K] = seg_local[s_]
+            Qg[i, :, :, :len(ms)] = meas_t[:, :, ms]
+            Wg[i, :, :len(ms)] = w_vis[:, ms]
+            bufs[s_] = (Qg[i, :, :, :K], Wg[i, :, :K])
+        batches.append((group, Pg, Qg, Wg))
+
+    def fill_pseudo(s_):
+        # joint pseudo-markers where the neighbours put them; none where a neighbour
+        # is not solved in a frame (weight 0), none from a model-placed radius onto
+        # the ulna it was placed on
+        seg = segs[s_]
+        Q, Wt = bufs[s_]
+        slot = len(seg_markers[s_])
+        pseudo = [(T[seg.parent], p_par, joint_weight) for _, p_par in seg.links()]
+        for c in children[s_]:
+            wc = 0.0 if segs[c].root in fixed else joint_weight
+            pseudo += [(T[c], p_self, wc) for p_self, _ in segs[c].links()]
+        for Tn, point, wj in pseudo:
+            target = _apply(Tn, point)
+            good = np.isfinite(target).all(axis=1)
+            Q[:, :, slot] = np.where(good[:, None], target, 0.0)
+            Wt[:, slot] = np.where(good, wj, 0.0)
+            slot += 1
+
     schedule = [(k, None) for k in sweeps]
     if model_bones:
         schedule.append((0, "model"))
         schedule += [(k, None) for k in range(max(2, int(n_sweeps) // 2))]
+    first = True
     for k, step in schedule:
         if step == "model":
             # An ulna its markers cannot hold (one styloid marker and the elbow, as in Plug-in Gait)
@@ -682,28 +734,27 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 ok[plan.segment_of[b]] = np.isfinite(poses[b]["transforms"]).all(axis=(1, 2))
             fixed = set(model_bones) | held
             free = [s for s in range(S) if segs[s].root not in fixed]
-            order_down, order_up = free, free[::-1]
             continue
-        for s in (order_down if k % 2 == 0 else order_up):
-            seg = segs[s]
-            Q, Wt = bufs[s]
-            slot = len(seg_markers[s])
-            # joint pseudo-markers where the neighbours put them; none where a neighbour
-            # is not solved in a frame (weight 0), none from a model-placed radius onto
-            # the ulna it was placed on
-            pseudo = [(T[seg.parent], p_par, joint_weight) for _, p_par in seg.links()]
-            for c in children[s]:
-                wc = 0.0 if segs[c].root in fixed else joint_weight
-                pseudo += [(T[c], p_self, wc) for p_self, _ in segs[c].links()]
-            for Tn, point, wj in pseudo:
-                target = _apply(Tn, point)
-                good = np.isfinite(target).all(axis=1)
-                Q[:, :, slot] = np.where(good[:, None], target, 0.0)
-                Wt[:, slot] = np.where(good, wj, 0.0)
-                slot += 1
-            R, t, v = _fit_qcp(seg_local[s], Q, Wt)
-            T[s] = _to_T(R, t, v)
-            ok[s] = v
+        if first:
+            for s in free:
+                fill_pseudo(s)
+                R, t, v = _fit_qcp(seg_local[s], *bufs[s])
+                T[s] = _to_T(R, t, v)
+                ok[s] = v
+            first = False
+            continue
+        free_set = set(free)
+        for group, Pg, Qg, Wg in (batches if k % 2 == 0 else batches[::-1]):
+            todo = [i for i, s in enumerate(group) if s in free_set]
+            if not todo:
+                continue
+            for i in todo:
+                fill_pseudo(group[i])
+            R, t, v = _fit_qcp(Pg, Qg, Wg)
+            Tg = _to_T(R, t, v)
+            for i in todo:
+                T[group[i]] = Tg[i]
+                ok[group[i]] = v[i]
 
     # A segment frame counts as solved only where its own visible markers and its proximal
     # joint (its parent solved there) make three points: pseudo-markers from its children
