@@ -24,7 +24,11 @@ Outputs per trial (``<trial>`` is the C3D file's stem)
     ab/adduction about the floating X, axial rotation about the child's Y).
     Left-side adduction and rotation are negated so that the same anatomical
     motion has the same sign on both sides (the left ISB frames here are
-    right-handed with Z to the right, as OpenSim's). Angles are absolute (not
+    right-handed with Z to the right, as OpenSim's). The knee's flexion (the
+    tibia on the femur) is negated too: a right-handed turn about Z carries
+    the shank forward, and Grood & Suntay, ISB and Plug-in Gait all count knee
+    flexion positive (on the pyCGM movement trial the raw angle ran against
+    Vicon's knee flexion, correlation -0.98). Angles are absolute (not
     relative to the static pose), as Plug-in Gait reports them.
 ``<trial>_residuals.png``
     Marker residuals over the trial.
@@ -223,6 +227,11 @@ def _is_left(name: str) -> bool:
     return name.endswith("_l") or name.lower().startswith("l_") or name.endswith("_L")
 
 
+def _is_knee(child: str, parent: str) -> bool:
+    """The tibia on the femur (embedded skeleton and OpenSim models name them so)."""
+    return child.lower().startswith("tibia") and parent.lower().startswith("femur")
+
+
 def joint_angles(skeleton: Skeleton, motion: Motion) -> dict[str, np.ndarray]:
     """Joint angles in degrees ``(F, 3)`` = (flexion Z, adduction X, rotation Y), keyed by child bone.
 
@@ -245,6 +254,8 @@ def joint_angles(skeleton: Skeleton, motion: Motion) -> dict[str, np.ndarray]:
             ang[ok] = Rotation.from_matrix(rel[ok]).as_euler("ZXY", degrees=True)
         if _is_left(child):
             ang[:, 1:] *= -1
+        if _is_knee(child, parent):
+            ang[:, 0] *= -1              # flexion positive (module docstring)
         out[child] = ang
     return out
 
