@@ -34,7 +34,8 @@ model's 14 segments (2 130 -> 4 460 frames per CPU second on the phantom's
 trials, same errors against the truth to 0.02 degree). Frames are
 independent until the gap rule, so a long trial is solved in blocks of
 ``_BLOCK_FRAMES`` frames (the same result; the batched arrays stay in the
-cache: 3 340 -> 7 490 frames per CPU second on a 9 900-frame walk). Along weakly
+cache; long trials solve about as fast as one segment at a time did,
+short ones 1.5-1.7x faster). Along weakly
 determined directions (the axial twist of a shank with two markers) the
 descent is slow: on the phantom's trials 6 sweeps (the default) give the
 same median / p95 bone errors as 30 within ~0.03 / 0.2 degree, while single
@@ -93,8 +94,8 @@ DEFAULT_JOINT_WEIGHT = 10.0
 # the radius turns on the ulna about the radial head (see PIVOT_JOINTS)
 _PREFERRED_JOINTS = PIVOT_JOINTS
 _MIN_SPREAD = 1e-3  # as bonecap.motion.rigid: sqrt(s2/s1) below this is collinear
-#: Frames solved together (see solve_lsq): the batched fits' arrays stay in the cache.
-_BLOCK_FRAMES = 2048
+#: Frames solved together (see solve_lsq): the batched fits' arrays stay small.
+_BLOCK_FRAMES = 4096
 #: Distance (mm) of a hinge's two axis points from its centre: about the elbow's width, so that
 #: the axis weighs like the markers 100-250 mm down the forearm.
 HINGE_LEVER_MM = 40.0
@@ -449,6 +450,30 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
     return R.reshape(G, F0, 3, 3), t.reshape(G, F0, 3), valid.reshape(G, F0)
 
 
+def _size_batches(group: Sequence[int], sizes: Mapping[int, int], waste: float = 0.25) -> list[list[int]]:
+    """Split one colour's segments into batches of similar point counts.
+
+    Padding every segment to the colour's largest count wastes up to half the
+    arithmetic (the default phantom's 10-point spine segment beside 3-point
+    feet): segments sorted by count join a batch while the padded size stays
+    within ``1 + waste`` of the real one. On short blocks the calls' overhead
+    costs more than the padding (``waste=inf``: one batch per colour, 18 %
+    faster on 220 frames, 4-10 % slower on 2 000-20 000).
+    """
+    out: list[list[int]] = []
+    cur: list[int] = []
+    for s in sorted(group, key=lambda x: -sizes[x]):
+        cand = cur + [s]
+        if cur and sizes[cur[0]] * len(cand) > (1 + waste) * sum(sizes[x] for x in cand):
+            out.append(cur)
+            cur = [s]
+        else:
+            cur = cand
+    if cur:
+        out.append(cur)
+    return out
+
+
 def _det3s(m):
     """Determinant of a 3x3 nested list of (F,) arrays."""
     return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
@@ -666,13 +691,15 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         depth.append(0 if seg.parent < 0 else depth[seg.parent] + 1)
     colours = [[s_ for s_ in range(S) if depth[s_] % 2 == c] for c in (0, 1)]
     colours = [c for c in colours if c]
+    colour_of = {s_: depth[s_] % 2 for s_ in range(S)}
+    sizes = {s_: len(seg_local[s_]) for s_ in range(S)}
     schedule = [(k, None) for k in range(int(n_sweeps))]
     if model_bones:
         schedule.append((0, "model"))
         schedule += [(k, None) for k in range(max(2, int(n_sweeps) // 2))]
     # Frames are solved independently until the gap rule, so long trials go in blocks of
-    # _BLOCK_FRAMES: a colour's batched arrays then stay in the cache (on the default phantom's
-    # 17 segments 7 200-7 400 frames/s in blocks of 1-2 thousand frames, 3 800 on 20 000 at once).
+    # _BLOCK_FRAMES: the batched arrays then stay small (on a 20 000-frame walk, 0.9-1.2x the
+    # one-segment-at-a-time sweeps within this machine's noise, 0.6-0.9x without blocks).
     blocks = [(lo, min(lo + _BLOCK_FRAMES, F)) for lo in range(0, F, _BLOCK_FRAMES)]
     steps = schedule
     if progress:
@@ -694,7 +721,9 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         # once; each segment's (Fb, 3, K) and (Fb, K) buffers are views into them
         bufs: list = [None] * S
         batches = []
-        for group in colours:
+        # a short block is bound by the calls' overhead, a long one by the padded arithmetic
+        waste = 0.25 if Fb >= 1024 else np.inf
+        for group in (g for colour in colours for g in _size_batches(colour, sizes, waste)):
             Kmax = max(len(seg_local[s_]) for s_ in group)
             Pg = np.zeros((len(group), Kmax, 3))
             Qg = np.zeros((len(group), Fb, 3, Kmax))
@@ -706,7 +735,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 Qg[i, :, :, :len(ms)] = meas_t_b[:, :, ms]
                 Wg[i, :, :len(ms)] = w_vis_b[:, ms]
                 bufs[s_] = (Qg[i, :, :, :K], Wg[i, :, :K])
-            batches.append((group, Pg, Qg, Wg))
+            batches.append((colour_of[group[0]], group, Pg, Qg, Wg))
 
         def fill_pseudo(s_):
             # joint pseudo-markers where the neighbours put them; none where a neighbour
@@ -762,7 +791,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 first = False
                 continue
             free_set = set(free)
-            for group, Pg, Qg, Wg in (batches if k % 2 == 0 else batches[::-1]):
+            for _, group, Pg, Qg, Wg in sorted(batches, key=lambda b: b[0] if k % 2 == 0 else -b[0]):
                 todo = [i for i, s in enumerate(group) if s in free_set]
                 if not todo:
                     continue
