@@ -100,6 +100,19 @@ def test_outputs_of_a_movement_trial(pycgm_motion, shared_data):
             - z["transforms"][:, list(z["bones"]).index("femur_l"), :3, 3], axis=1)), rel=0.2)
 
 
+def _flexion_against_vicon(out, shared_data, bone, vicon_angles):
+    """Per side (L, R): our ``<bone>_<side>_flexion_deg`` of the pyCGM movement trial and Vicon's
+    ``<side><vicon_angles>`` flexion stored in it, over the frames where both are finite."""
+    stem = "pycgm_Test_Movement_trial"
+    trial = read_c3d(shared_data / PYCGM / f"{stem}.c3d")
+    rows = list(csv.DictReader(open(out / f"{stem}_angles.csv")))
+    for side in "LR":
+        ours = np.array([float(r[f"{bone}_{side.lower()}_flexion_deg"] or "nan") for r in rows])
+        vicon = trial.other_points[f"{side}{vicon_angles}"][:, 0]
+        ok = np.isfinite(ours) & np.isfinite(vicon)
+        yield ours[ok], vicon[ok]
+
+
 def test_hip_flexion_follows_plug_in_gait(pycgm_motion, shared_data):
     """Vicon's own Plug-in Gait hip flexion, stored in the trial: the same motion, up to a constant offset.
 
@@ -107,18 +120,9 @@ def test_hip_flexion_follows_plug_in_gait(pycgm_motion, shared_data):
     neutral thigh and pelvis (ISB frames of our template against PiG's
     marker-defined ones): docs/benchmarks.md reports the absolute RMS too.
     """
-    out, _ = pycgm_motion
-    stem = "pycgm_Test_Movement_trial"
-    trial = read_c3d(shared_data / PYCGM / f"{stem}.c3d")
-    rows = list(csv.DictReader(open(out / f"{stem}_angles.csv")))
-    for side in "LR":
-        ours = np.array([float(r[f"femur_{side.lower()}_flexion_deg"] or "nan") for r in rows])
-        vicon = trial.other_points[f"{side}HipAngles"][:, 0]
-        ok = np.isfinite(ours) & np.isfinite(vicon)
-        d = ours[ok] - vicon[ok]
-        assert np.corrcoef(ours[ok], vicon[ok])[0, 1] > 0.9
-        assert np.std(d) < 5.0
-
+    for ours, vicon in _flexion_against_vicon(pycgm_motion[0], shared_data, "femur", "HipAngles"):
+        assert np.corrcoef(ours, vicon)[0, 1] > 0.9
+        assert np.std(ours - vicon) < 5.0
 
 
 def test_knee_flexion_follows_plug_in_gait(pycgm_motion, shared_data):
@@ -127,16 +131,9 @@ def test_knee_flexion_follows_plug_in_gait(pycgm_motion, shared_data):
     Deep flexion in this trial (to 100 deg) shows Plug-in Gait's cross-talk (its knee adduction reaches
     55 deg), so the spread of the difference is larger than the hip's; the mean offset (7-16 deg) is the
     two models' neutral shanks (docs/benchmarks.md)."""
-    out, _ = pycgm_motion
-    stem = "pycgm_Test_Movement_trial"
-    trial = read_c3d(shared_data / PYCGM / f"{stem}.c3d")
-    rows = list(csv.DictReader(open(out / f"{stem}_angles.csv")))
-    for side in "LR":
-        ours = np.array([float(r[f"tibia_{side.lower()}_flexion_deg"] or "nan") for r in rows])
-        vicon = trial.other_points[f"{side}KneeAngles"][:, 0]
-        ok = np.isfinite(ours) & np.isfinite(vicon)
-        assert np.corrcoef(ours[ok], vicon[ok])[0, 1] > 0.95
-        assert np.std(ours[ok] - vicon[ok]) < 7.0
+    for ours, vicon in _flexion_against_vicon(pycgm_motion[0], shared_data, "tibia", "KneeAngles"):
+        assert np.corrcoef(ours, vicon)[0, 1] > 0.95
+        assert np.std(ours - vicon) < 7.0
 
 
 def test_tennis_serve_in_metres_and_its_gap_copy(shared_data, tmp_path):

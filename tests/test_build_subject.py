@@ -210,48 +210,51 @@ def _largest_turn_deg(a, b, idx):
     return float(np.degrees(Rotation.from_matrix(rel).magnitude().max()))
 
 
+def _roll_and_swing(sk, bones, pivot, tip, swing_axis, prefixes, axes, roll_deg, swing_deg):
+    """:func:`neutral_twist` on the reference poses with ``bones`` rolled by ``roll_deg`` about
+    pivot -> tip, then on them swung by ``swing_deg`` about ``swing_axis`` (made perpendicular to
+    pivot -> tip: no roll): the largest turns (deg) left from the reference, and added to the swing."""
+    import numpy as np
+
+    from bonecap.build_subject import neutral_twist
+
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    idx = [sk.names.index(n) for n in bones]
+    u = (tip - pivot) / np.linalg.norm(tip - pivot)
+    a = np.asarray(swing_axis, float)
+    swung = _turned_about(ref, idx, pivot, a - (a @ u) * u, swing_deg)
+    return (_largest_turn_deg(neutral_twist(sk, _turned_about(ref, idx, pivot, u, roll_deg), prefixes, axes), ref, idx),
+            _largest_turn_deg(neutral_twist(sk, swung, prefixes, axes), swung, idx))
+
+
 def test_foot_roll_comes_from_the_shank_but_its_flexion_from_the_markers():
     """neutral_twist with the foot axes: a static whose foot was rolled about its long axis
     (ankle -> 2nd metatarsal head) gets the reference roll back; a plantarflexion about the
     ankle's flexion axis is kept. Calcaneus and foot ride with the talus."""
     import numpy as np
 
-    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES, neutral_twist
+    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES
     from bonecap.skeleton.generic import build_generic_skeleton
 
     sk = build_generic_skeleton()
-    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
-    foot = [sk.names.index(n) for n in ("talus_r", "calcaneus_r", "foot_r")]
     ankle = sk.bones["talus_r"].landmark_in_world("ankle")
     mt2 = sk.bones["foot_r"].landmark_in_world("metatarsal2_head")
-
-    fixed = neutral_twist(sk, _turned_about(ref, foot, ankle, mt2 - ankle, 40.0), FOOT_PREFIXES, FOOT_AXES)
-    assert _largest_turn_deg(fixed, ref, foot) < 0.01
-    flexion_axis = np.cross(mt2 - ankle, [0.0, 1.0, 0.0])          # perpendicular to the foot, horizontal
-    flexed = _turned_about(ref, foot, ankle, flexion_axis, 25.0)
-    kept = neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES)
-    assert _largest_turn_deg(kept, flexed, foot) < 0.01
+    roll, swing = _roll_and_swing(sk, ("talus_r", "calcaneus_r", "foot_r"), ankle, mt2,
+                                  np.cross(mt2 - ankle, [0.0, 1.0, 0.0]), FOOT_PREFIXES, FOOT_AXES, 40.0, 25.0)
+    assert roll < 0.01 and swing < 0.01
 
 
 def test_opensim_foot_rolls_with_the_shank_about_ankle_to_mtp(shared_data):
     """An OpenSim model's foot (talus, calcn, toes: no landmarks) takes the roll of the foot's long axis
     (ankle -> the calcaneus body's metatarsophalangeal joint) from the shank; its flexion is kept."""
-    import numpy as np
-
-    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES, neutral_twist
+    from bonecap.build_subject import FOOT_AXES, FOOT_PREFIXES
     from bonecap.skeleton.template import load_template
 
     sk = load_template(shared_data / "bones/opensim/models/Rajagopal2016.osim")
-    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
-    foot = [sk.names.index(n) for n in ("talus_r", "calcn_r", "toes_r")]
-    ankle = sk.bones["talus_r"].landmark_in_world("ankle_r")
-    mtp = sk.bones["calcn_r"].landmark_in_world("mtp_r")
-    fixed = neutral_twist(sk, _turned_about(ref, foot, ankle, mtp - ankle, 20.0), FOOT_PREFIXES, FOOT_AXES)
-    assert _largest_turn_deg(fixed, ref, foot) < 0.01
-    u = (mtp - ankle) / np.linalg.norm(mtp - ankle)
-    z = np.array([0.0, 0.0, 1.0])
-    flexed = _turned_about(ref, foot, ankle, z - (z @ u) * u, 15.0)   # a swing about ~Z, no roll
-    assert _largest_turn_deg(neutral_twist(sk, flexed, FOOT_PREFIXES, FOOT_AXES), flexed, foot) < 0.5
+    roll, swing = _roll_and_swing(sk, ("talus_r", "calcn_r", "toes_r"), sk.bones["talus_r"].landmark_in_world("ankle_r"),
+                                  sk.bones["calcn_r"].landmark_in_world("mtp_r"), [0.0, 0.0, 1.0],
+                                  FOOT_PREFIXES, FOOT_AXES, 20.0, 15.0)
+    assert roll < 0.01 and swing < 0.5
 
 
 def test_the_hand_takes_its_twist_from_the_radius_but_its_flexion_from_the_markers():
@@ -293,7 +296,7 @@ def test_joint_consistent_keeps_the_solved_pronation():
 
     sk = build_generic_skeleton()
     ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
-    ulna, radius = sk.bones["ulna_r"], sk.bones["radius_r"]
+    ulna = sk.bones["ulna_r"]
     head = ulna.landmark_in_world("proximal_radioulnar") if "proximal_radioulnar" in ulna.landmarks else \
         ulna.bone_to_world[:3, :3] @ ulna.joint_centres["proximal_radioulnar"] + ulna.bone_to_world[:3, 3]
     distal = ulna.bone_to_world[:3, :3] @ ulna.joint_centres["distal_radioulnar"] + ulna.bone_to_world[:3, 3]
