@@ -240,7 +240,10 @@ def arm_skeleton(elbow="elbow_r"):
         "radius_r": Bone("radius_r", "ulna_r", bone_to_world=T(1090),
                          joint_centres={"radioulnar_r": [0, 25, 0]}, joint_axes={"radioulnar_r": [0, 0, 1]}),
     }
-    return Skeleton(bones, world="model")
+    # one-coordinate joints, as an OpenSim model declares its pin joints
+    joints = {elbow: {"type": "PinJoint", "coordinates": ["elbow_flex_r"]},
+              "radioulnar_r": {"type": "PinJoint", "coordinates": ["pro_sup_r"]}}
+    return Skeleton(bones, world="model", metadata={"joints": joints})
 
 
 def test_hinge_elbow_holds_an_ulna_with_one_marker():
@@ -278,9 +281,13 @@ def test_hinge_elbow_holds_an_ulna_with_one_marker():
     off[3] += [0, 15, 0]
     mo = solve_lsq(skel, mb, off, meas, n_sweeps=30)
     assert np.median(rotation_angle_deg(mo.transforms[:, 1], T[:, 1])) < 4.0
-    # without hinges: the one-marker ulna is not a segment of its own
+    # without hinges (a joint not named a hinge, or not declared with one coordinate): the
+    # one-marker ulna is not a segment of its own
     plain = arm_skeleton(elbow="cubital")
     assert plan_segments(plain, mb).segment_of["ulna_r"] == 0
+    undeclared = arm_skeleton()
+    undeclared.metadata = {}
+    assert plan_segments(undeclared, mb).segment_of["ulna_r"] == 0
     # an ulna its two markers hold keeps ball joints (no hinge at the elbow or the radio-ulnar joint)
     two = plan_segments(skel, mb[:4] + ["ulna_r"] + mb[4:])
     assert [len(seg.links()) for seg in two.segments] == [0, 1, 1]

@@ -15,8 +15,9 @@ proximal joints of its children), a soft ball joint: the two bones' copies of
 the joint centre are pulled together with a stiffness ``k`` counted in
 *marker equivalents* (``joint_weight``; a joint weighs as much as ``k``
 markers of weight 1). A hinge (:data:`~bonecap.skeleton.kinematics.HINGE_JOINTS`,
-the elbow, where the bones give its axis, and only for a bone with fewer
-than two markers of its own and its children) adds two more such pairs, the
+the elbow, where the template declares it a one-axis joint and the bones
+give its axis, and only for a bone with fewer than two markers of its own
+and its children) adds two more such pairs, the
 points ``HINGE_LEVER_MM`` either side of the centre on the axis: the child
 then keeps the axis and only flexes about it, and one marker off the axis
 determines it (the ulna's). The sum over all segments is the global objective of Lu
@@ -184,12 +185,22 @@ def _shared_joint(skeleton: Skeleton, bone: str, joints: Mapping[str, str]) -> s
 def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray | None:
     """The unit axis (in ``bone``'s frame) of the hinge ``joint`` tying ``bone`` to its parent, or None.
 
+    A hinge is a joint named in :data:`HINGE_JOINTS` that the template declares with one
+    coordinate (``skeleton.metadata["joints"]``, as read from an OpenSim model).
+
     The parent's axis is preferred, carried into the bone's frame at the reference pose, so that
     both copies are one line there; a bone's own axis serves when the parent gives none."""
     if joint is None:
         return None
     base = joint[:-2] if joint.endswith(("_r", "_l")) else joint
     if base not in HINGE_JOINTS:
+        return None
+    # only where the template models the joint as one (an OpenSim joint with one coordinate):
+    # the embedded skeleton declares no joint types, and on its static-only path (Plug-in Gait's
+    # two upper-arm markers nearly in line with the shoulder) a hinged one-marker ulna traded a
+    # right arm tracked within 6-13 deg for a left arm flipped by 60-140 deg
+    declared = (skeleton.metadata.get("joints") or {}).get(joint) or {}
+    if len(declared.get("coordinates") or ()) != 1:
         return None
     b = skeleton.bones[bone]
     parent = skeleton.bones[b.parent]
