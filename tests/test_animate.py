@@ -201,6 +201,10 @@ def test_opensim_template_end_to_end(shared_data, tmp_path, cli):
     assert res.returncode == 0, res.stderr
     res = cli("animate", tmp_path / "s", ph / "trials/walk.c3d", "-o", tmp_path / "a")
     assert res.returncode == 0, res.stderr
+    # the paper's rules need its marker set: a one-line error, no output
+    res = cli("animate", tmp_path / "s", ph / "trials/walk.c3d", "--solver", "paper", "-o", tmp_path / "p")
+    assert res.returncode == 1 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert "paper_solver" in res.stderr and "--solver lsq" in res.stderr and not (tmp_path / "p").exists()
     res = cli("evaluate", "motion", tmp_path / "a", "--truth", ph / "truth", "--json")
     assert res.returncode == 0, res.stderr
     ev = json.loads(res.stdout)["overall"]

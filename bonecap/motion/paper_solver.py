@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bonecap.errors import DataError
+from bonecap.errors import DataError, InputError
 from bonecap.model import Motion
 from bonecap.motion.paper import joint_centre_from_markers, joint_centre_offset, marker_frame, solve_bone
 
@@ -64,9 +64,14 @@ def solve_paper(subject, names: list[str], measured: np.ndarray, *, max_gap_fram
     if not subject.static:
         raise DataError("the paper solver needs the static trial the subject was bound in "
                         "(build the subject with --static)")
-    config = load_marker_set(subject.marker_set).paper_solver if subject.marker_set else {}
+    try:
+        mset = load_marker_set(subject.marker_set) if subject.marker_set else None
+    except InputError:          # not a shipped set: an OpenSim model's own MarkerSet
+        mset = None
+    config = mset.paper_solver if mset is not None else {}
     if not config:
-        raise DataError(f"marker set {subject.marker_set!r} has no paper_solver rules: use --solver lsq")
+        raise DataError(f"marker set {subject.marker_set!r} has no paper_solver rules (they come with the "
+                        "kojima_paper set): use --solver lsq")
     sk = subject.skeleton
     _, bones, local = subject.marker_arrays(names)
     base = solve_lsq(sk, bones, local, measured, max_gap_frames=max_gap_frames, forearm=forearm,
