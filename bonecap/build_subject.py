@@ -200,8 +200,8 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         for bone_prefix, point in spec or []:
             suffix = n[-2:] if n.endswith(("_l", "_r")) else ""
             ob = skeleton.bones.get(bone_prefix + suffix)
-            name = next((k for k in (point, point + suffix) if ob is not None and k in ob.landmarks | ob.joint_centres),
-                        None)
+            name = next((k for k in (point, point + suffix)
+                         if ob is not None and (k in ob.landmarks or k in ob.joint_centres)), None)
             if name is not None:
                 others = [np.linalg.solve(b.bone_to_world, np.r_[ob.landmark_in_world(name), 1.0])[:3]]
                 break

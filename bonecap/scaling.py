@@ -248,7 +248,7 @@ def fit_scale_factors(skeleton: Skeleton, marker_bones: list[str], placed_local:
             a, m = (a[ok] @ u)[:, None], (m[ok] @ u)[:, None]
         else:
             a, m = a[ok], m[ok]
-        if np.abs(a).max() < min_span_mm and np.linalg.norm(a, axis=1).max() < min_span_mm:
+        if np.linalg.norm(a, axis=1).max() < min_span_mm:
             continue
         s = float((a * m).sum() / (a * a).sum())
         own[name] = float(np.clip(s, *limits))

@@ -272,9 +272,9 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     # proximal hinge and the hinges of its children carry it. A bone its markers do hold keeps its
     # ball joints: an MRI subject's elbow axis a few degrees off the true one turned a two-marker
     # ulna 1-4 degrees further off than its markers alone (phantom seed 1).
-    can_hinge = {n: _hinge_axis(skeleton, n, joint[n]) is not None for n in names}
-    weak = {n for n in names if can_hinge[n] and own[n] < 2}
-    hinged = {n for n in names if can_hinge[n] and (n in weak or skeleton.bones[n].parent in weak)}
+    axis = {n: _hinge_axis(skeleton, n, joint[n]) for n in names}
+    weak = {n for n in names if axis[n] is not None and own[n] < 2}
+    hinged = {n for n in names if axis[n] is not None and (n in weak or skeleton.bones[n].parent in weak)}
 
     if segments is not None:
         seg_root = {n: str(segments.get(n, n)) for n in names}
@@ -330,7 +330,7 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
             j_self = skeleton.bones[r].joint_centres[j]
             P = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, skeleton.bones[pb].bone_to_world)
             j_par = P[:3, :3] @ skeleton.bones[pb].joint_centres[j] + P[:3, 3]
-            a_self = _hinge_axis(skeleton, r, j) if r in hinged else None
+            a_self = axis[r] if r in hinged else None
             if a_self is not None:
                 # the same line in the parent segment's frame at the reference pose
                 a_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world[:3, :3],
@@ -702,7 +702,6 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         depth.append(0 if seg.parent < 0 else depth[seg.parent] + 1)
     colours = [[s_ for s_ in range(S) if depth[s_] % 2 == c] for c in (0, 1)]
     colours = [c for c in colours if c]
-    colour_of = {s_: depth[s_] % 2 for s_ in range(S)}
     sizes = {s_: len(seg_local[s_]) for s_ in range(S)}
     schedule = [(k, None) for k in range(int(n_sweeps))]
     if model_bones:
@@ -746,7 +745,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 Qg[i, :, :, :len(ms)] = meas_t_b[:, :, ms]
                 Wg[i, :, :len(ms)] = w_vis_b[:, ms]
                 bufs[s_] = (Qg[i, :, :, :K], Wg[i, :, :K])
-            batches.append((colour_of[group[0]], group, Pg, Qg, Wg))
+            batches.append((group, Pg, Qg, Wg))
 
         def fill_pseudo(s_):
             # joint pseudo-markers where the neighbours put them; none where a neighbour
@@ -802,7 +801,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 first = False
                 continue
             free_set = set(free)
-            for _, group, Pg, Qg, Wg in sorted(batches, key=lambda b: b[0] if k % 2 == 0 else -b[0]):
+            # colour 0's batches come first in the list: reversed, colour 1 goes first
+            for group, Pg, Qg, Wg in (batches if k % 2 == 0 else batches[::-1]):
                 todo = [i for i, s in enumerate(group) if s in free_set]
                 if not todo:
                     continue
