@@ -28,7 +28,7 @@ from bonecap.model import Skeleton
 
 __all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
            "marker_set_from_osim", "check_marker_set", "place_markers", "match_labels",
-           "LIMB_LONG_BONES", "limb_side_directions"]
+           "LIMB_LONG_BONES", "limb_side_directions", "midline_directions", "MIDLINE_TOLERANCE_MM"]
 
 #: Folder of the marker sets shipped with bonecap (beside the package in the source tree).
 MARKER_SET_DIR = Path(__file__).resolve().parents[1] / "marker_sets"
@@ -348,6 +348,49 @@ def limb_side_directions(vertices: np.ndarray, points: np.ndarray, normals: np.n
     return out
 
 
+#: A landmark of a midline bone this close to its sagittal plane (bone-frame Z, mm) is on the midline.
+MIDLINE_TOLERANCE_MM = 5.0
+
+
+def midline_directions(points: np.ndarray, normals: np.ndarray,
+                       tolerance_mm: float = MIDLINE_TOLERANCE_MM) -> np.ndarray:
+    """Surface normals at midline landmarks turned into the mid-sagittal plane (bone frame).
+
+    A marker over a landmark on the body's midline (C7 and T10 over their
+    spinous processes, CLAV and STRN on the sternum, SACR) sits on the
+    midline: the placement manuals put it there, and by symmetry the
+    surface normal there has no left-right part. On a mesh the normal at a
+    ridge's tip (a spinous process is 5-8 mm wide) is ill-conditioned: the
+    nearest triangles of a warped template leaned C7's normal 22-25 degrees
+    to one side, and a ray along it met the skin 20-30 mm off the midline
+    (phantom seeds 1 and 2). The left-right component (the bone frame's Z,
+    ISB and OpenSim alike) is removed where the landmark lies within
+    ``tolerance_mm`` of the sagittal plane; a normal that would vanish
+    (pointing sideways) is left as it is.
+
+    Parameters
+    ----------
+    points : ndarray (M, 3)
+        Landmarks in a midline bone's frame (mm; Z to the right).
+    normals : ndarray (M, 3)
+        Unit outward surface normals there.
+    tolerance_mm : float
+
+    Returns
+    -------
+    ndarray (M, 3)
+        Unit directions, bone frame.
+    """
+    out = np.array(normals, dtype=float, copy=True)
+    on_mid = np.abs(np.asarray(points, float)[:, 2]) < tolerance_mm
+    sag = out.copy()
+    sag[:, 2] = 0.0
+    norm = np.linalg.norm(sag, axis=1)
+    turn = on_mid & (norm > 0.3)
+    out[turn] = sag[turn] / norm[turn, None]
+    return out
+
+
 def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | None = None
                   ) -> dict[str, np.ndarray]:
     """Place markers on a skeleton at its reference pose.
@@ -357,7 +400,9 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
     near triangles, e.g. at a vertex; a bone without a mesh uses the direction
     from the bone origin). On the limbs' long bones (:data:`LIMB_LONG_BONES`)
     the push is away from the shaft axis instead (:func:`limb_side_directions`):
-    limb markers sit on the side of the limb, never over the end of a bone.
+    limb markers sit on the side of the limb, never over the end of a bone; on
+    a midline bone (no ``_r``/``_l`` suffix) a landmark on the sagittal plane is
+    pushed within that plane (:func:`midline_directions`).
     A marker whose set gives a ``direction`` (:attr:`MarkerDef.direction`) is
     pushed that way: the placement manuals say "lateral thigh", and a
     direction in the bone frame is the same on every subject, while a
@@ -400,6 +445,8 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
             normals = _nearest_surface_normals(bone.mesh.vertices, bone.mesh.faces, local)
             if bone_name.startswith(LIMB_LONG_BONES):
                 normals = limb_side_directions(bone.mesh.vertices, local, normals)
+            elif not bone_name.endswith(("_r", "_l")):
+                normals = midline_directions(local, normals)
         else:
             normals = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-9)
         # a direction the set states (the placement manual's "lateral thigh") wins over any surface rule
