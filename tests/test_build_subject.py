@@ -110,18 +110,23 @@ def test_evaluate_subject_cli(built, phantom, cli):
 
 
 def test_labels_path_reaches_the_truth(phantom, tmp_path):
-    """With the truth's own 2 mm label map (--labels), meshing + warp give the truth back to about a millimetre."""
+    """With the truth's own label map (--labels; 6 mm voxels at the tiny preset), meshing + warp give the
+    truth back to within a quarter to a third of a voxel: 1.3-1.55 mm on two versions of the subject, which
+    moved by a few millimetres against the grid (where a voxel's centre falls decides its label)."""
+    import nibabel as nib
+
     from bonecap.build_subject import run_build_subject
     from bonecap.subject import read_subject
 
-    report = run_build_subject(None, tmp_path / "s", labels=phantom / "truth/labels/merged.nii.gz",
-                               static=phantom / "trials/static.c3d")
+    labels = phantom / "truth/labels/merged.nii.gz"
+    voxel = float(max(nib.load(labels).header.get_zooms()[:3]))
+    report = run_build_subject(None, tmp_path / "s", labels=labels, static=phantom / "trials/static.c3d")
     assert {"femur_r", "tibia_l", "hip_r", "humerus_r"} <= set(report["extracted_bones"])
     subj = read_subject(tmp_path / "s")
     for bone in ("femur_r", "tibia_l", "humerus_r"):
         truth = read_mesh(phantom / f"truth/meshes/{bone}.ply")
-        assert _surface_mean(read_mesh(tmp_path / f"s/extracted/{bone}.ply"), truth) < 1.5
-        assert _surface_mean(subj.skeleton.world_mesh(bone), truth) < 1.5
+        assert _surface_mean(read_mesh(tmp_path / f"s/extracted/{bone}.ply"), truth) < 0.3 * voxel
+        assert _surface_mean(subj.skeleton.world_mesh(bone), truth) < 0.3 * voxel
 
 
 def test_bad_inputs(phantom, tmp_path, cli):

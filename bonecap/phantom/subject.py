@@ -901,6 +901,33 @@ def _individual_bone_shapes(sk: Skeleton, spec: dict[str, Any] | None) -> Skelet
     return out
 
 
+def _joint_with_parent(bone, parent, rel: np.ndarray, tol_mm: float = 0.5) -> tuple[str, str] | None:
+    """The joint a bone shares with its parent: ``(key in bone, key in parent)``, or None.
+
+    The same name (``knee``), the parent's side-suffixed name (a hip bone's
+    ``sacroiliac`` is the sacrum's ``sacroiliac_r``, a rib's ``costovertebral5``
+    its vertebra's ``costovertebral5_r``), or else any two joint centres at one
+    place (``rel``: bone frame -> parent frame). A hip bone placed by its origin
+    instead (mid-ASIS, where neither bone's shape field is tapered to zero) came
+    off the sacrum by up to 15 mm: seed 2's hip bones met neither the sacrum nor
+    each other at the pubic symphysis.
+    """
+    same = sorted(set(bone.joint_centres) & set(parent.joint_centres))
+    if same:
+        return same[0], same[0]
+    side = bone.name[-2:] if bone.name.endswith(("_r", "_l")) else ""
+    if side:
+        for k in sorted(bone.joint_centres):
+            if k + side in parent.joint_centres:
+                return k, k + side
+    for kb in sorted(bone.joint_centres):
+        pb = rel[:3, :3] @ bone.joint_centres[kb] + rel[:3, 3]
+        for kp in sorted(parent.joint_centres):
+            if np.linalg.norm(pb - parent.joint_centres[kp]) < tol_mm:
+                return kb, kp
+    return None
+
+
 def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.ndarray]]) -> Skeleton:
     """A new skeleton whose bones' own-frame geometry is mapped by ``maps`` and whose poses follow the joints."""
     from bonecap.model import Bone
@@ -917,9 +944,9 @@ def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.nda
         else:
             par = sk.bones[bone.parent]
             rel = np.linalg.solve(par.bone_to_world, bone.bone_to_world)
-            keys = sorted(set(bone.joint_centres) & set(par.joint_centres))
-            if keys:
-                cp, cb = par.joint_centres[keys[0]], bone.joint_centres[keys[0]]
+            pair = _joint_with_parent(bone, par, rel)
+            if pair is not None:
+                cp, cb = par.joint_centres[pair[1]], bone.joint_centres[pair[0]]
             else:
                 cp, cb = rel[:3, 3], np.zeros(3)
             phi_p = maps.get(bone.parent, lambda p: np.asarray(p, dtype=float))

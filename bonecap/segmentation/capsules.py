@@ -180,7 +180,7 @@ def _fit_sphere(values: np.ndarray, model: _SphereModel, c0: np.ndarray, pitch: 
 def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarray | None = None,
                   slice_thickness_mm: float | None = None, min_contrast: float = 1.1, max_residual: float = 0.12,
                   min_seen: float = 0.2, fit_radius: bool = False,
-                  n_inplane: int | None = None, threshold: float | None = None
+                  n_inplane: int | None = None, threshold: float | None = None, min_voxels: int = 8
                   ) -> tuple[np.ndarray, dict[str, Any]]:
     """Find oil capsules on the skin and fit their centres, including the depth between slices.
 
@@ -216,6 +216,13 @@ def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarr
     n_inplane : int, optional
         Sub-samples per pixel side for the partial-volume model (default:
         enough for ~0.25 mm); through the slice the model is exact.
+    min_voxels : int
+        Minimum number of voxels the fitted sphere fills by at least 10 %:
+        fewer cannot show a sphere's shape, and any speck fits. An 8 mm
+        capsule fills 25-40 voxels of 1.5 mm x 1.5 mm x 2.5 mm and ~20 at
+        1.8 mm x 1.8 mm x 5 mm; at 4 mm x 4 mm x 15 mm (the tiny phantom's
+        stations) 3-4, where the thin edge of a shoulder's skin at the last
+        slice was taken for one.
     threshold : float, optional
         Air/tissue threshold (default: Otsu on the log of the volume).
 
@@ -344,7 +351,8 @@ def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarr
         rel = rms / m if m > 0 else float("inf")
         # How much of the fitted sphere lies in the voxels the fit saw (the rest is in the body or
         # outside the box): a sphere fitted to a speck with only its rim touching is no capsule.
-        seen = float(model.fraction(c_mm).sum() * np.prod(spacing[:2]) * thick) / ((4 / 3) * math.pi * r_fit ** 3)
+        frac = model.fraction(c_mm)
+        seen = float(frac.sum() * np.prod(spacing[:2]) * thick) / ((4 / 3) * math.pi * r_fit ** 3)
         inside = np.all((c_idx >= lo - 1) & (c_idx <= hi))
         reason = None
         if not (m > 0 and np.isfinite(fat_level) and m >= min_contrast * fat_level):
@@ -358,6 +366,8 @@ def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarr
             reason = "cut by the end of the stack"
         elif seen < min_seen:
             reason = "sphere not in the image"
+        elif int(np.count_nonzero(frac > 0.1)) < min_voxels:
+            reason = "too few voxels to resolve a sphere"
         elif not inside:
             reason = "centre outside candidate"
         if reason:
