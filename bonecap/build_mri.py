@@ -263,13 +263,27 @@ def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float
     return turned
 
 
-def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES
-               ) -> dict[str, np.ndarray]:
+def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES,
+               margin_mm: float = 20.0) -> dict[str, np.ndarray]:
     """Seed polylines (LPS mm) of the bones to segment, from the aligned template.
 
     A long bone's seed is the line from its proximal to its distal joint
     centre (its marrow lies along it); another bone's is its joint centres
     and its mesh centroid, ordered along z.
+
+    Where the bone across a long bone's distal joint is not among ``bones``
+    (too small to segment at whole-body resolution) and reaches past the
+    joint centre back along the long bone -- the talus, whose dome sits
+    14.5 mm deep in the ankle's mortise -- ``segment_bones``' search, which
+    goes ``margin_mm`` past the line's ends, must stop where that bone
+    begins: the line ends ``margin_mm`` + that reach short of the joint
+    centre. Ending at the ankle's centre, the tibia's line searched 20 mm
+    into the talus and took its sections (a phantom's ankle centres then
+    19-21 mm too low, its static feet 20-22 deg off); what the search now
+    leaves out (the malleoli) comes from the warp. The carpals begin 4 mm
+    beyond the wrist's centre: the radius's line is left as it is (ended
+    16 mm short, its extraction lost the styloid's end and a phantom's
+    radius came out 16 mm off).
     """
     out = {}
     for name in bones:
@@ -282,7 +296,20 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         if name.startswith(_LONG) and len(pts) > 2:
             # the shaft's two ends only: proximal = first, distal = farthest from it
             d = [np.linalg.norm(p - pts[0]) for p in pts]
-            pts = [pts[0], pts[int(np.argmax(d))]]
+            far = int(np.argmax(d))
+            pts = [pts[0], pts[far]]
+            joint = list(b.joint_centres)[far]
+            # the bones across that joint: the same joint name at the same place (names repeat per side)
+            partners = [n for n, o in template.bones.items() if n != name and joint in o.joint_centres
+                        and np.linalg.norm(o.landmark_in_world(joint) - pts[1]) < 1.0]
+            meshes = [template.bones[n] for n in partners if template.bones[n].mesh is not None]
+            if meshes and not any(n in bones for n in partners):
+                length = float(np.linalg.norm(pts[1] - pts[0]))
+                back = (pts[0] - pts[1]) / max(length, 1e-9)
+                reach = max(float(((o.mesh.transformed(o.bone_to_world).vertices - pts[1]) @ back).max())
+                            for o in meshes)
+                if reach > 0.0:
+                    pts[1] = pts[1] + float(min(margin_mm + reach, 0.25 * length)) * back
         if not pts:
             continue
         p = np.asarray(pts) @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]

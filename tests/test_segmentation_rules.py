@@ -363,3 +363,39 @@ def test_marrow_sections_finds_a_bone_without_a_seed():
     assert out[45, 60].all() and not out[78, 60].any()
     with pytest.raises(ValueError, match="where"):
         marrow_sections(vol, body[:, :, :2])
+
+
+def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
+    """The tibia's seed line ends the 20 mm search margin + the talus's reach into the ankle's mortise
+    (how far its template mesh extends past the ankle's centre back along the tibia) short of the
+    ankle's centre: searched to 20 mm beyond that centre, the tibia took the talus's sections (not
+    segmented at whole-body resolution) on a phantom. The carpals begin beyond the wrist's centre
+    (reach < 0): the radius's line reaches the wrist, as do lines that end at a joint with a segmented
+    bone (femur-tibia, fibula-tibia, ulna-radius)."""
+    from bonecap.build_mri import bone_seeds
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+
+    def reach(bone, partner, prox, joint):
+        b, o = sk.bones[bone], sk.bones[partner]
+        back = b.landmark_in_world(prox) - b.landmark_in_world(joint)
+        back /= np.linalg.norm(back)
+        return float(((o.mesh.transformed(o.bone_to_world).vertices - b.landmark_in_world(joint)) @ back).max())
+
+    talus, carpals = reach("tibia_r", "talus_r", "knee", "ankle"), reach("radius_l", "carpals_l", "elbow", "wrist")
+    assert 5.0 < talus < 25.0 and -10.0 < carpals < 5.0
+    for margin in (20.0, 5.0):
+        seeds = bone_seeds(sk, np.eye(4), margin_mm=margin)
+        for bone, prox, dist, short in (("tibia_r", "knee", "ankle", margin + talus),
+                                        ("radius_l", "elbow", "wrist", 0.0),
+                                        ("femur_r", "hip", "knee", 0.0),
+                                        ("fibula_l", "proximal_tibiofibular", "distal_tibiofibular", 0.0),
+                                        ("ulna_r", "elbow", "distal_radioulnar", 0.0)):
+            b = sk.bones[bone]
+            p0, p1 = b.landmark_in_world(prox), b.landmark_in_world(dist)
+            line = seeds[bone]
+            assert np.allclose(line[0], p0)
+            assert np.linalg.norm(line[-1] - p1) == pytest.approx(short, abs=1e-6), (bone, margin)
+            u = (p1 - p0) / np.linalg.norm(p1 - p0)
+            assert np.linalg.norm(np.cross(line[-1] - p0, u)) < 1e-6        # on the joint-to-joint line
