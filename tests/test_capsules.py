@@ -164,6 +164,8 @@ def test_find_capsules_input_checks():
     vol = Volume(np.zeros((10, 10, 4), np.float32), np.eye(4))
     with pytest.raises(ValueError, match="radius_mm"):
         find_capsules(vol, radius_mm=0)
+    with pytest.raises(ValueError, match="min_voxels"):
+        find_capsules(vol, min_voxels=0)
     with pytest.raises(ValueError, match="body_mask shape"):
         find_capsules(vol, body_mask=np.zeros((3, 3, 3), bool), threshold=1.0)
     sheared = np.eye(4)

@@ -219,10 +219,10 @@ def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarr
     min_voxels : int
         Minimum number of voxels the fitted sphere fills by at least 10 %:
         fewer cannot show a sphere's shape, and any speck fits. An 8 mm
-        capsule fills 25-40 voxels of 1.5 mm x 1.5 mm x 2.5 mm and ~20 at
-        1.8 mm x 1.8 mm x 5 mm; at 4 mm x 4 mm x 15 mm (the tiny phantom's
-        stations) 3-4, where the thin edge of a shoulder's skin at the last
-        slice was taken for one.
+        capsule fills 27-37 voxels in the tiny phantom's forearm stacks and
+        12-23 of 1.8 mm x 1.8 mm x 5 mm (the tests' analytic scenes); at
+        4 mm x 4 mm x 15 mm (the tiny phantom's stations) 3-4, where the thin
+        edge of a shoulder's skin at the last slice was taken for one.
     threshold : float, optional
         Air/tissue threshold (default: Otsu on the log of the volume).
 
@@ -243,11 +243,13 @@ def find_capsules(volume: Volume, *, radius_mm: float = 4.0, body_mask: np.ndarr
     Raises
     ------
     ValueError
-        Non-positive radius or thickness, a ``body_mask`` of another shape,
-        non-orthogonal grid axes.
+        Non-positive radius or thickness, ``min_voxels`` < 1, a ``body_mask``
+        of another shape, non-orthogonal grid axes.
     """
     if not float(radius_mm) > 0:
         raise ValueError(f"radius_mm must be positive, got {radius_mm}")
+    if int(min_voxels) < 1:
+        raise ValueError(f"min_voxels must be at least 1, got {min_voxels}")
     if not isinstance(volume, Volume):
         raise ValueError(f"volume must be a Volume, got {type(volume).__name__}")
     data = np.asarray(volume.data, np.float32)
