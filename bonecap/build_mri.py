@@ -285,6 +285,9 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     16 mm short, one phantom's radius lost its styloid's end and came out
     27.6 mm off in the trials, 11.0 before).
     """
+    from bonecap.skeleton.warp import _joint_groups
+
+    group_of = {e: g for g in _joint_groups(template) for e in g}
     out = {}
     for name in bones:
         b = template.bones.get(name)
@@ -298,10 +301,8 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
             d = [np.linalg.norm(p - pts[0]) for p in pts]
             far = int(np.argmax(d))
             pts = [pts[0], pts[far]]
-            joint = list(b.joint_centres)[far]
-            # the bones across that joint: the same joint name at the same place (names repeat per side)
-            partners = [n for n, o in template.bones.items() if n != name and joint in o.joint_centres
-                        and np.linalg.norm(o.landmark_in_world(joint) - pts[1]) < 1.0]
+            # the bones across that joint (the warp's joint groups: one name at one place, side suffixes aside)
+            partners = [n for n, _ in group_of[(name, list(b.joint_centres)[far])] if n != name]
             meshes = [template.bones[n] for n in partners if template.bones[n].mesh is not None]
             if meshes and not any(n in bones for n in partners):
                 length = float(np.linalg.norm(pts[1] - pts[0]))

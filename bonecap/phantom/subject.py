@@ -901,37 +901,20 @@ def _individual_bone_shapes(sk: Skeleton, spec: dict[str, Any] | None) -> Skelet
     return out
 
 
-def _joint_with_parent(bone, parent, rel: np.ndarray, tol_mm: float = 0.5) -> tuple[str, str] | None:
-    """The joint a bone shares with its parent: ``(key in bone, key in parent)``, or None.
-
-    The same name (``knee``), the parent's side-suffixed name (a hip bone's
-    ``sacroiliac`` is the sacrum's ``sacroiliac_r``, a rib's ``costovertebral5``
-    its vertebra's ``costovertebral5_r``), or else any two joint centres at one
-    place (``rel``: bone frame -> parent frame). A hip bone placed by its origin
-    instead (mid-ASIS, where neither bone's shape field is tapered to zero) came
-    off the sacrum by up to 15 mm: seed 2's hip bones met neither the sacrum nor
-    each other at the pubic symphysis.
-    """
-    same = sorted(set(bone.joint_centres) & set(parent.joint_centres))
-    if same:
-        return same[0], same[0]
-    side = bone.name[-2:] if bone.name.endswith(("_r", "_l")) else ""
-    if side:
-        for k in sorted(bone.joint_centres):
-            if k + side in parent.joint_centres:
-                return k, k + side
-    for kb in sorted(bone.joint_centres):
-        pb = rel[:3, :3] @ bone.joint_centres[kb] + rel[:3, 3]
-        for kp in sorted(parent.joint_centres):
-            if np.linalg.norm(pb - parent.joint_centres[kp]) < tol_mm:
-                return kb, kp
-    return None
-
-
 def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.ndarray]]) -> Skeleton:
     """A new skeleton whose bones' own-frame geometry is mapped by ``maps`` and whose poses follow the joints."""
     from bonecap.model import Bone
+    from bonecap.skeleton.warp import _joint_groups
 
+    # the joint each bone shares with its parent: the same name, or the parent's side-suffixed one (a hip
+    # bone's ``sacroiliac`` is the sacrum's ``sacroiliac_r``, a rib's ``costovertebral5`` its vertebra's
+    # ``costovertebral5_r``), as the warp groups joints; the same name first. Placed by its origin instead
+    # (mid-ASIS, where neither bone's shape field is tapered to zero), a hip bone came off the sacrum by up
+    # to 15 mm: seed 2's hip bones met neither the sacrum nor each other at the pubic symphysis.
+    shared: dict[str, list[tuple[str, str]]] = {}
+    for g in _joint_groups(sk):
+        for b1, k1 in g:
+            shared.setdefault(b1, []).extend((k1, k2) for b2, k2 in g if sk.bones[b1].parent == b2)
     new: dict[str, Bone] = {}
     for name, bone in sk.bones.items():
         phi = maps.get(name, lambda p: np.asarray(p, dtype=float))
@@ -944,7 +927,7 @@ def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.nda
         else:
             par = sk.bones[bone.parent]
             rel = np.linalg.solve(par.bone_to_world, bone.bone_to_world)
-            pair = _joint_with_parent(bone, par, rel)
+            pair = min(shared.get(name, []), key=lambda p: (p[0] != p[1], p[0]), default=None)
             if pair is not None:
                 cp, cb = par.joint_centres[pair[1]], bone.joint_centres[pair[0]]
             else:
