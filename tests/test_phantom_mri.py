@@ -512,3 +512,35 @@ def test_dicom_series_bytes_are_pydicoms_from_scratch(tmp_path):
         assert ds.SOPInstanceUID == ds.file_meta.MediaStorageSOPInstanceUID
         seen.add(ds.SOPInstanceUID)
     assert len(seen) == len(files)
+
+
+def test_forearm_crop_keeps_every_face_a_stack_sees():
+    """``make_phantom`` cuts the posed whole-body skin to a slab across the forearm before the
+    stacks are rendered (memory): the image must be the one of the whole mesh. A bent tube (an
+    arm beside a body-sized block) rendered on a stack along its forearm part, whole and cut."""
+    from bonecap.phantom import _FOREARM_CROP_MARGIN_MM, _faces_across, _keep_faces
+
+    arm = trimesh.creation.cylinder(radius=35.0, height=600.0, sections=48)
+    arm.apply_translation((0.0, 0.0, 100.0))
+    trunk = trimesh.creation.box(extents=(300.0, 200.0, 900.0))
+    trunk.apply_translation((250.0, 0.0, 0.0))
+    body = trimesh.util.concatenate([trunk, arm])
+    v, f = trimesh.remesh.subdivide_to_size(body.vertices, body.faces, max_edge=25.0)
+    skin = Mesh(v, f, "lps")
+    elbow, wrist = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 250.0])
+    plan = mri.plan_forearm_stack(skin, np.stack([elbow, wrist]), name="f", index=1, pixel_mm=4.0,
+                                  pitch_mm=5.0, thickness_mm=5.0, margin_mm=12.0)
+    reach = 10.0 + 5.0
+    keep = _faces_across(skin, elbow, wrist, -reach - _FOREARM_CROP_MARGIN_MM, 250.0 + reach + _FOREARM_CROP_MARGIN_MM)
+    assert 0 < keep.sum() < len(skin.faces)
+    cut = _keep_faces(skin, keep)
+    assert len(cut.vertices) < len(skin.vertices)
+    assert np.array_equal(cut.vertices[cut.faces], skin.vertices[skin.faces[keep]])   # same triangles
+    kw = dict(slice_thickness_mm=5.0, inplane_supersample=2, through_plane_samples=2, noise=False,
+              texture=False, bias=0.0)
+    whole = mri.render_volume([(skin, "fat")], plan.affine, plan.shape, rng=0, **kw)
+    part = mri.render_volume([(cut, "fat")], plan.affine, plan.shape, rng=0, **kw)
+    assert whole.max() > 0 and np.array_equal(whole, part)
+    # a cut short of the stack's end slices would change them (the check has teeth)
+    short = _keep_faces(skin, _faces_across(skin, elbow, wrist, 60.0, 190.0))
+    assert not np.array_equal(whole, mri.render_volume([(short, "fat")], plan.affine, plan.shape, rng=0, **kw))

@@ -306,6 +306,17 @@ def test_layers_are_ordered_for_the_renderer(subject):
     assert tissues.count("cortex") == n_bones
     assert tissues.count("marrow") == sum(b.inner_mesh is not None for b in subject.skeleton.bones.values())
     assert all(m.frame == subject.skeleton.world == "model" for m, _ in layers)
+    # mapped to another frame: the same layers transformed, sharing the subject's faces arrays
+    T = np.array([[1.0, 0, 0, 5], [0, 0, -1, 7], [0, 1, 0, -3], [0, 0, 0, 1]])
+    mapped = subject.layers(T, "lps")
+    assert [t for _, t in mapped] == [t for _, t in layers]
+    for (m, _), (w, _) in zip(mapped, layers):
+        assert m.frame == "lps"
+        assert np.allclose(m.vertices, w.vertices @ T[:3, :3].T + T[:3, 3], atol=1e-9)
+        assert np.array_equal(m.faces, w.faces)
+    assert mapped[0][0].faces is subject.skin.faces
+    first = next(n for n, b in subject.skeleton.bones.items() if b.mesh is not None)
+    assert mapped[2][0].faces is subject.skeleton.bones[first].mesh.faces
 
 
 def test_slab_marching_cubes_equals_the_whole_grid(monkeypatch):
@@ -316,7 +327,7 @@ def test_slab_marching_cubes_equals_the_whole_grid(monkeypatch):
 
     import bonecap.phantom.subject as subject_mod
 
-    monkeypatch.setattr(subject_mod, "_SLAB_VOXELS", 40 * 40 * 5)      # slabs of 5 layers: many seams
+    monkeypatch.setattr(subject_mod, "_MC_SLAB_VOXELS", 40 * 40 * 5)   # slabs of 5 layers: many seams
     ax = np.arange(40, dtype=np.float32)
     X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
     field = np.minimum(np.sqrt((X - 19.3) ** 2 + (Y - 12.6) ** 2 + (Z - 20.1) ** 2) - 8.0,
@@ -357,3 +368,41 @@ def test_body_smoothing_and_decimation_helpers_match_the_libraries():
         subj._SIMPLIFY_IN_CHILD_FACES = old
     assert len(b[1]) < 0.4 * len(f)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_mesh_checks_match_trimesh_and_extract_orients_outward():
+    """``_closed_and_oriented`` is trimesh's ``is_watertight and is_winding_consistent`` and
+    ``_signed_volume`` its ``volume`` (both replace trimesh in ``_extract`` for memory); checked on
+    a closed sphere, one with a flipped face, one with a face removed and two spheres touching at
+    an edge shared by four faces (what ``_repair_pinches`` separates)."""
+    from bonecap.phantom import subject as subj
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    flipped = sphere.copy()
+    flipped.faces[5] = flipped.faces[5][::-1]
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)
+    a = trimesh.creation.box(extents=(10, 10, 10))
+    b = trimesh.creation.box(extents=(10, 10, 10))
+    b.apply_translation((10, 10, 0))                   # the boxes share one edge
+    pinched = trimesh.util.concatenate([a, b])
+    pinched.merge_vertices()
+    for tm in (sphere, flipped, holed, pinched):
+        ours = subj._closed_and_oriented(np.asarray(tm.faces), len(tm.vertices))
+        assert ours == bool(tm.is_watertight and tm.is_winding_consistent)
+    assert subj._closed_and_oriented(np.asarray(sphere.faces), len(sphere.vertices))
+    assert not subj._closed_and_oriented(np.asarray(pinched.faces), len(pinched.vertices))
+    fixed = subj._repair_pinches(np.asarray(pinched.vertices), np.asarray(pinched.faces))
+    assert fixed is not None and subj._closed_and_oriented(fixed[1], len(fixed[0]))
+    V, F = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    assert np.isclose(subj._signed_volume(V, F, chunk=100), sphere.volume, rtol=1e-12)
+    assert np.isclose(subj._signed_volume(V, F[:, ::-1]), -sphere.volume, rtol=1e-12)
+
+    # _extract of an inward-wound level set comes out closed, outward and decimated to budget
+    ax = np.arange(48, dtype=np.float32)
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    field = (np.sqrt((X - 23.5) ** 2 + (Y - 24.2) ** 2 + (Z - 23.1) ** 2) - 15.0).astype(np.float16)
+    mesh = subj._extract(field, np.zeros(3), 2.0, 1500, 4, "test")
+    assert len(mesh.faces) <= 1500
+    assert subj._closed_and_oriented(mesh.faces, len(mesh.vertices))
+    vol = subj._signed_volume(mesh.vertices, mesh.faces)
+    assert vol > 0 and abs(vol / (4 / 3 * np.pi * 30.0 ** 3) - 1) < 0.05

@@ -122,6 +122,29 @@ def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float = 4.0,
             "centres_lps": {n: c.tolist() for n, c in zip(binding.names, lps)}}
 
 
+def _faces_across(mesh: Mesh, elbow: np.ndarray, wrist: np.ndarray, lo_mm: float, hi_mm: float) -> np.ndarray:
+    """Faces whose extent along elbow -> wrist overlaps ``[lo_mm, hi_mm]`` (0 at the elbow), as a mask."""
+    n = np.asarray(wrist, float) - np.asarray(elbow, float)
+    n /= np.linalg.norm(n)
+    sf = ((mesh.vertices - elbow) @ n)[mesh.faces]
+    return (sf.max(axis=1) >= lo_mm) & (sf.min(axis=1) <= hi_mm)
+
+
+def _keep_faces(mesh: Mesh, keep: np.ndarray) -> Mesh:
+    """The faces in ``keep`` and the vertices they use (in their order), as a new mesh."""
+    F = mesh.faces[keep]
+    used = np.zeros(len(mesh.vertices), bool)
+    used[F.ravel()] = True
+    new_id = np.cumsum(used) - 1
+    return Mesh(mesh.vertices[used], new_id[F], mesh.frame)
+
+
+#: Slices of a forearm stack reach :func:`~bonecap.phantom.mri.plan_forearm_stack`'s
+#: ``extend_mm`` (10) past the elbow and the wrist, plus half a slice thickness of slice
+#: profile; the posed skin and fascia are kept this much further on each side (mm).
+_FOREARM_CROP_MARGIN_MM = 40.0
+
+
 def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float | None = None,
                  generic: str | os.PathLike = "default", preset: str = "default",
                  marker_capsules: bool = False) -> dict[str, Any]:
@@ -184,8 +207,11 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     subject = make_subject(seed, stature_mm, generic, preset=preset)
     skeleton = subject.skeleton
     bone_ids = {name: i + 1 for i, name in enumerate(n for n, b in skeleton.bones.items() if b.mesh is not None)}
-    layers = [(_to_lps(m), tissue) for m, tissue in subject.layers()]
-    label_meshes = [(_to_lps(skeleton.world_mesh(n)), i) for n, i in bone_ids.items()]
+    # LPS copies for the renderer share the faces of the subject's meshes, and the oracle labels
+    # share the cortex layers' meshes (the same bone surfaces): ~27 MB less while the stations render
+    layers = subject.layers(MODEL_TO_LPS, "lps")
+    cortex = iter(m for m, tissue in layers if tissue == "cortex")    # skeleton order, bones with a mesh
+    label_meshes = [(next(cortex), i) for i in bone_ids.values()]
     timings["subject"] = time.perf_counter() - t0
     bar.update()
 
@@ -211,8 +237,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     release_memory()
     t0 = time.perf_counter()
     bar.set_postfix_str("stations")
-    skin_lps = layers[0][0]
-    plans = plan_stations(skin_lps, n_stations=cfg["n_stations"], pixel_mm=cfg["pixel_mm"],
+    plans = plan_stations(layers[0][0], n_stations=cfg["n_stations"], pixel_mm=cfg["pixel_mm"],
                           pitch_mm=cfg["pitch_mm"], thickness_mm=cfg["thickness_mm"], rng=rng)
     labels_dir = truth / "labels"
 
@@ -228,9 +253,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     write_merged_labels(label_meshes, labels_dir / "merged.nii.gz", voxel_mm=cfg["merged_voxel_mm"],
                         inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"])
     # the LPS copies of the bones (render layers and labels, ~30 MB at the default preset) are
-    # not used again; skin and muscle (layers[:2]) are written with the truth
-    del label_meshes
-    layers = layers[:2]
+    # not used again, nor are the LPS skin and fascia (14 MB; the truth stage transforms them again)
+    del label_meshes, layers
     timings["stations"] = time.perf_counter() - t0
     bar.update()
 
@@ -240,9 +264,25 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.set_postfix_str("forearm")
     poses, forearm_truth = {}, {}
     spheres = {name: _bounding_sphere(b.mesh) for name, b in skeleton.bones.items() if b.mesh is not None}
+    crop = None
     for theta in FOREARM_TWISTS_DEG:
         posed = pose_forearm(skeleton, subject.skin, subject.muscle, theta, side="r")
-        f_layers = [(_to_lps(posed.skin), "fat"), (_to_lps(posed.muscle), "muscle")]
+        # Only a slab of the posed body across the forearm can show in a stack: the rest of the
+        # whole-body skin and fascia (~43 MB for the three twists in LPS at the default preset)
+        # is cut off here. Whole faces go, in order, and every face a stack's slice planes cross
+        # stays (so the images are unchanged); one face set for all twists keeps the skins'
+        # common topology, which the capsule placement needs.
+        L = float(np.linalg.norm(posed.wrist - posed.elbow))
+        reach = 10.0 + cfg["forearm_pitch_mm"]
+        if crop is None:
+            crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
+                                  L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]
+        for m, keep in zip((posed.skin, posed.muscle), crop):
+            if (_faces_across(m, posed.elbow, posed.wrist, -reach, L + reach) & ~keep).any():
+                raise RuntimeError(f"the forearm at {theta} deg moved out of the first twist's crop")
+        f_layers = [(_to_lps(_keep_faces(posed.skin, crop[0])), "fat"),
+                    (_to_lps(_keep_faces(posed.muscle, crop[1])), "muscle")]
+        posed.skin = posed.muscle = None      # the whole posed body (~14 MB) is not needed past here
         f_labels = []
         for name, bone in skeleton.bones.items():
             if bone.mesh is None:
@@ -297,8 +337,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     meshes_dir = truth / "meshes"
     for name in bone_ids:
         write_mesh(_to_lps(skeleton.world_mesh(name)), meshes_dir / f"{name}.ply")
-    write_mesh(skin_lps, meshes_dir / "skin.ply")
-    write_mesh(layers[1][0], meshes_dir / "muscle.ply")
+    write_mesh(_to_lps(subject.skin), meshes_dir / "skin.ply")
+    write_mesh(_to_lps(subject.muscle), meshes_dir / "muscle.ply")
     _write_json(truth / "labels.json", {"ids": bone_ids, "background": 0,
                                         "frame": "LPS (NIfTI files store RAS; readers convert)"})
     _write_json(truth / "stations.json", {"stations": [st.plan.to_dict() for st in stations.stations],

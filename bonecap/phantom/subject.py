@@ -304,25 +304,53 @@ class PhantomSubject:
     params: dict[str, Any]
     metadata: dict[str, Any] = field(default_factory=dict)
 
-    def layers(self) -> list[tuple[Mesh, str]]:
+    def layers(self, world_to: np.ndarray | None = None, frame: str = "") -> list[tuple[Mesh, str]]:
         """The ordered render layers for :mod:`bonecap.phantom.mri`.
+
+        Parameters
+        ----------
+        world_to : ndarray (4, 4), optional
+            A transform from the world frame (e.g. model -> LPS) applied to
+            every layer; the layers then share the faces arrays of the
+            subject's meshes instead of copying them (they are for reading:
+            the whole-body set's faces are ~20 MB at the default preset).
+        frame : str
+            Frame name of the transformed layers.
 
         Returns
         -------
         list of (Mesh, str)
             ``(skin, "fat")``, ``(muscle, "muscle")``, then per bone (skeleton
             order) ``(outer surface, "cortex")`` and, when the bone has an
-            endosteal surface, ``(inner surface, "marrow")``; all in the world
-            frame. Later layers overwrite earlier ones, so a bone without an
-            inner mesh renders as solid cortex.
+            endosteal surface, ``(inner surface, "marrow")``; in the world
+            frame, or mapped by ``world_to``. Later layers overwrite earlier
+            ones, so a bone without an inner mesh renders as solid cortex.
         """
-        out: list[tuple[Mesh, str]] = [(self.skin, "fat"), (self.muscle, "muscle")]
-        for name, bone in self.skeleton.bones.items():
+        if world_to is None:
+            out: list[tuple[Mesh, str]] = [(self.skin, "fat"), (self.muscle, "muscle")]
+            for name, bone in self.skeleton.bones.items():
+                if bone.mesh is None:
+                    continue
+                out.append((self.skeleton.world_mesh(name), "cortex"))
+                if bone.inner_mesh is not None:
+                    out.append((bone.inner_mesh.transformed(bone.bone_to_world, self.skeleton.world), "marrow"))
+            return out
+
+        T_w = np.asarray(world_to, dtype=float)
+
+        def mapped(mesh: Mesh, bone_to_world: np.ndarray | None = None) -> Mesh:
+            v = mesh.vertices
+            if bone_to_world is not None:     # two steps, as world_mesh then transformed: the same digits
+                v = v @ bone_to_world[:3, :3].T + bone_to_world[:3, 3]
+            return Mesh(v @ T_w[:3, :3].T + T_w[:3, 3], mesh.faces, frame)
+
+        out = [(mapped(self.skin), "fat"), (mapped(self.muscle), "muscle")]
+        for bone in self.skeleton.bones.values():
             if bone.mesh is None:
                 continue
-            out.append((self.skeleton.world_mesh(name), "cortex"))
+            out.append((mapped(bone.mesh, bone.bone_to_world), "cortex"))
             if bone.inner_mesh is not None:
-                out.append((bone.inner_mesh.transformed(bone.bone_to_world, self.skeleton.world), "marrow"))
+                out.append((mapped(bone.inner_mesh, bone.bone_to_world), "marrow"))
         return out
 
     def bone_world_vertices(self, names: list[str] | None = None) -> np.ndarray:
@@ -1959,7 +1987,8 @@ def _fill_cavities(field: np.ndarray, value: float) -> None:
         keep = np.zeros(n + 1, dtype=bool)
         keep[border] = True
         keep[0] = True
-        field[~keep[lab]] = value
+        for i in range(len(lab)):             # per plane: no whole-grid boolean temporaries
+            field[i][~keep[lab[i]]] = value
     del lab
     lab, n = _label(field < 0)
     if n > 1:
@@ -1969,16 +1998,21 @@ def _fill_cavities(field: np.ndarray, value: float) -> None:
         sizes[0] = 0
         drop = np.ones(n + 1, dtype=bool)
         drop[[0, int(np.argmax(sizes))]] = False
-        field[drop[lab]] = -value
+        for i in range(len(lab)):
+            field[i][drop[lab[i]]] = -value
 
 
-#: Voxels per slab of the body grid (~6 MB per float32 array of a slab).
-_SLAB_VOXELS = 1_500_000
+#: Voxels per slab of the body grid (~4 MB per float32 array of a slab).
+_SLAB_VOXELS = 1_000_000
+#: Voxels per slab of the marching cubes (:func:`_marching_cubes_slabs`). Not tied to
+#: :data:`_SLAB_VOXELS`: the slabs set the order of the surface's vertices, which the
+#: decimation depends on, so changing them changes the phantom.
+_MC_SLAB_VOXELS = 1_500_000
 
 
-def _y_slabs(shape: tuple[int, int, int]) -> list[tuple[int, int]]:
-    """Ranges ``[j0, j1)`` along the grid's long (Y, superior) axis, ~:data:`_SLAB_VOXELS` each."""
-    dy = max(4, _SLAB_VOXELS // max(shape[0] * shape[2], 1))
+def _y_slabs(shape: tuple[int, int, int], voxels: int | None = None) -> list[tuple[int, int]]:
+    """Ranges ``[j0, j1)`` along the grid's long (Y, superior) axis, ``voxels`` (:data:`_SLAB_VOXELS`) each."""
+    dy = max(4, (voxels or _SLAB_VOXELS) // max(shape[0] * shape[2], 1))
     return [(j0, min(j0 + dy, shape[1])) for j0 in range(0, shape[1], dy)]
 
 
@@ -1992,6 +2026,12 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
     3.5 mm: 36 MB each; float16 keeps 1/1000 of the value, < 0.01 mm near the
     surfaces). Cavities are filled on the whole grid (they need its
     connectivity). The result is the same as filling the whole grid at once.
+
+    The skin field is returned finished; the fascia field still needs
+    ``_fill_cavities(Mu, -h)`` and :func:`_close_field`, which
+    :func:`make_subject` runs once the skin is extracted and its field freed
+    (the cavity labels take ~56 MB at the default preset: with both fields
+    alive beside them that had been the phantom's peak).
     """
     t0 = time.perf_counter()
     bp = params["body"]
@@ -2014,10 +2054,10 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
     # bone proximity: occupied voxels, dilated by the largest margin per slab (with a halo)
     R = float(smp.m_skin.max()) + 4.0
     r = int(math.ceil(R / h))
+    # the samples' voxels, sorted along Y: each slab marks its own (with the halo) instead of one
+    # whole-grid occupancy array (18 M voxels, 18 MB at the default preset, on the peak)
     ijk = np.round((W - origin) / h).astype(np.int64)
-    occ = np.zeros(shape, dtype=np.uint8)
-    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1
-    del ijk
+    ijk = ijk[np.argsort(ijk[:, 1], kind="stable")].astype(np.int32)
     tree = cKDTree(W)
     boxes = {}
     for name, sh in plan.shapes.items():
@@ -2044,7 +2084,8 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
             Yb = axes[1][j0:j1][None, :, None]
             Zb = axes[2][sl[2]][None, None, :]
             d = np.empty(tuple(x.stop - x.start for x in sl), dtype=np.float32)
-            step = max(1, 400_000 // max(d.shape[1] * d.shape[2], 1))
+            # ~15 float32 temporaries per point in sdf/fat: 150 000 points keep them near 9 MB
+            step = max(1, 150_000 // max(d.shape[1] * d.shape[2], 1))
             for x0 in range(0, d.shape[0], step):    # the distance's temporaries stay small
                 Xb = axes[0][sl[0]][x0:x0 + step, None, None]
                 dj = sh.sdf(Xb, Yb, Zb)
@@ -2093,7 +2134,11 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
         # distance to the bone surfaces: near bones (within the largest margin) and not deep in the body,
         # where neither the skin nor the fascia can come near a bone
         h0, h1 = max(0, y0 - r), min(shape[1], y1 + r)
-        near = ndimage.maximum_filter(occ[:, h0:h1], size=2 * r + 1)[:, y0 - h0:y1 - h0]
+        p0, p1 = np.searchsorted(ijk[:, 1], [h0, h1])
+        occ = np.zeros((shape[0], h1 - h0, shape[2]), dtype=np.uint8)
+        occ[ijk[p0:p1, 0], ijk[p0:p1, 1] - h0, ijk[p0:p1, 2]] = 1
+        near = ndimage.maximum_filter(occ, size=2 * r + 1)[:, y0 - h0:y1 - h0]
+        del occ
         near &= A > -(f + np.float32(R))
         cand = np.flatnonzero(near)
         del near
@@ -2114,7 +2159,7 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
         Fat[:, y0:y1] = f
         del A, f, cand, Bd, idx, m_skin
         t_bone += time.perf_counter() - ts
-    del occ, tree
+    del ijk, tree, W
     release_memory()
     timings["segments"] = t_seg
     timings["bone_candidates"] = float(n_cand)
@@ -2137,12 +2182,15 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
     del cand, bm
     for y0, y1 in _y_slabs(shape):
         np.maximum(Mu[:, y0:y1], (S[:, y0:y1].astype(np.float32) + fmin).astype(np.float16), out=Mu[:, y0:y1])
-    _fill_cavities(Mu, -h)
-    for grid_field in (S, Mu):                # an outside border, so that every surface closes
-        for ax in range(3):
-            grid_field.swapaxes(0, ax)[[0, -1]] = np.float16(1e4)
+    _close_field(S)
     timings["layers"] = time.perf_counter() - t0
     return S, Mu, origin, h
+
+
+def _close_field(field: np.ndarray) -> None:
+    """An outside border on the grid, so that every level surface closes."""
+    for ax in range(3):
+        field.swapaxes(0, ax)[[0, -1]] = np.float16(1e4)
 
 
 def _marching_cubes_slabs(field: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -2157,7 +2205,7 @@ def _marching_cubes_slabs(field: np.ndarray, h: float) -> tuple[np.ndarray, np.n
 
     V, F = [], []
     nv = 0
-    for y0, y1 in _y_slabs(field.shape):
+    for y0, y1 in _y_slabs(field.shape, _MC_SLAB_VOXELS):
         y1 = min(y1 + 1, field.shape[1])          # overlap one layer with the next slab
         if y1 - y0 < 2:
             continue
@@ -2260,8 +2308,45 @@ def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
     return d["v"], d["f"]
 
 
+def _closed_and_oriented(faces: np.ndarray, n_vertices: int) -> bool:
+    """Whether every edge joins exactly two faces that run it in opposite directions.
+
+    The same as trimesh's ``is_watertight and is_winding_consistent`` (each
+    undirected edge in two faces and each directed edge once), from one sorted
+    array of directed-edge keys: trimesh's checks build edge groups and a face
+    adjacency graph, ~60 MB at the whole-body skin's 200 000 faces.
+    """
+    F = np.asarray(faces, dtype=np.int64)
+    n = np.int64(n_vertices)
+    key = np.sort(np.concatenate([F[:, 0] * n + F[:, 1], F[:, 1] * n + F[:, 2], F[:, 2] * n + F[:, 0]]))
+    if len(key) and (key[1:] == key[:-1]).any():
+        return False                          # a directed edge twice: two faces disagree on it, or a 3rd face
+    rev = np.sort((key % n) * n + key // n)   # every edge's reverse, each once too
+    return bool(np.array_equal(key, rev))
+
+
+def _signed_volume(V: np.ndarray, F: np.ndarray, chunk: int = 65_536) -> float:
+    """Signed volume of a closed triangle mesh (divergence theorem), in chunks of faces.
+
+    Positive when the faces wind outward. trimesh's ``volume`` computes every mass
+    property at once (~80 MB of temporaries at 200 000 faces) for this sign.
+    """
+    vol = 0.0
+    for i in range(0, len(F), chunk):
+        f = F[i:i + chunk]
+        vol += float(np.einsum("ij,ij->", V[f[:, 0]], np.cross(V[f[:, 1]], V[f[:, 2]])))
+    return vol / 6.0
+
+
 def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, taubin: int, what: str) -> Mesh:
-    """Zero level set of ``field`` (negative inside, model frame) as a smoothed, decimated, watertight mesh."""
+    """Zero level set of ``field`` (negative inside, model frame) as a smoothed, decimated, watertight mesh.
+
+    Memory (the whole-body skin at 3.5 mm: ~440 000 faces before decimation): plain
+    arrays are carried, not trimesh objects, and the checks are
+    :func:`_closed_and_oriented` and :func:`_signed_volume`; trimesh's cached
+    edge groups, adjacency graph and mass properties had made this the phantom's
+    peak (+140 MB over the field, 2026-11-26).
+    """
     import trimesh
 
     verts, faces = _marching_cubes_slabs(field, h)
@@ -2269,31 +2354,38 @@ def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, ta
     verts += origin
     if taubin:
         verts = _taubin(verts, faces, lamb=0.5, nu=0.53, iterations=taubin)
-    tm = trimesh.Trimesh(verts, faces, process=False)
-    del verts, faces
-    if len(tm.faces) > max_faces:
+    if len(faces) > max_faces:
+        v32 = verts.astype(np.float32)
+        n_in = len(faces)
+        del verts
         # quadric decimation now and then pinches two sheets into a non-manifold edge: retry with
         # other targets (each try ~0.1-0.5 s)
         for frac in (1.0, 0.9, 0.8):
-            v, fc = _simplify(np.asarray(tm.vertices, dtype=np.float32), np.asarray(tm.faces),
-                              1.0 - frac * max_faces / len(tm.faces))
-            dec = _repair_pinches(trimesh.Trimesh(v, fc, process=True))
+            v, fc = _simplify(v32, faces, 1.0 - frac * max_faces / n_in)
+            # process=True: merge the vertices the decimation left coincident, drop degenerate faces
+            tm = trimesh.Trimesh(v, fc, process=True)
+            del v, fc
+            dec = _repair_pinches(np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64))
+            del tm
             if dec is not None:
-                tm = dec
+                verts, faces = dec
                 break
         else:
             raise RuntimeError(f"could not decimate the {what} mesh to {max_faces} faces and keep it watertight")
-    if tm.volume < 0:
-        tm.invert()
-    if not tm.is_watertight:
+        del v32
+    elif not _closed_and_oriented(faces, len(verts)):
+        tm = trimesh.Trimesh(verts, faces, process=False)
         trimesh.repair.fill_holes(tm)
-    if not tm.is_watertight:
-        raise RuntimeError(f"the {what} mesh is not watertight")
-    return Mesh(np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces), WORLD)
+        if not (tm.is_watertight and tm.is_winding_consistent):
+            raise RuntimeError(f"the {what} mesh is not watertight")
+        verts, faces = np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces)
+    if _signed_volume(verts, faces) < 0:
+        faces = np.ascontiguousarray(faces[:, ::-1])
+    return Mesh(np.asarray(verts, dtype=float), np.asarray(faces), WORLD)
 
 
-def _repair_pinches(tm):
-    """A watertight, consistently wound version of a decimated mesh, or None.
+def _repair_pinches(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """A watertight, consistently wound version ``(V, F)`` of a decimated mesh, or None.
 
     Quadric decimation sometimes collapses a thin tunnel (e.g. under a bone
     arch) into an edge shared by four faces: two sheets touching. The sheets
@@ -2302,10 +2394,8 @@ def _repair_pinches(tm):
     copies are moved 0.05 mm apart along their sheet's normal so that a later
     vertex merge does not join them again.
     """
-    import trimesh
-
-    V = np.asarray(tm.vertices, dtype=float).copy()
-    F = np.asarray(tm.faces).copy()
+    V = np.array(V, dtype=float)
+    F = np.array(F, dtype=np.int64)
     for _ in range(3):
         e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1).astype(np.int64)
         key, c = np.unique(e[:, 0] * (len(V) + 1) + e[:, 1], return_counts=True)
@@ -2350,8 +2440,7 @@ def _repair_pinches(tm):
         if not new_v:
             break
         V = np.vstack([V, np.array(new_v)])
-    out = trimesh.Trimesh(V, F, process=False)
-    return out if out.is_watertight and out.is_winding_consistent else None
+    return (V, F) if _closed_and_oriented(F, len(V)) else None
 
 
 # --------------------------------------------------------------------------- #
@@ -2431,10 +2520,13 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     timings["plan"] = time.perf_counter() - t0
     release_memory()
     S, Mu, origin, h = _fields(sk, smp, plan, params, h, timings)
+    del smp                                   # the bone samples (~20 MB) are not used again
     t0 = time.perf_counter()
     skin = _extract(S, origin, h, int(cfg["skin_faces"]), int(cfg["taubin_iterations"]), "skin")
     del S
     release_memory()
+    _fill_cavities(Mu, -h)
+    _close_field(Mu)
     muscle = _extract(Mu, origin, h, int(cfg["muscle_faces"]), int(cfg["taubin_iterations"]), "fascia")
     del Mu
     release_memory()
