@@ -139,9 +139,9 @@ def _keep_faces(mesh: Mesh, keep: np.ndarray) -> Mesh:
     return Mesh(mesh.vertices[used], new_id[F], mesh.frame)
 
 
-#: Slices of a forearm stack reach :func:`~bonecap.phantom.mri.plan_forearm_stack`'s
-#: ``extend_mm`` (10) past the elbow and the wrist, plus half a slice thickness of slice
-#: profile; the posed skin and fascia are kept this much further on each side (mm).
+#: Slices of a forearm stack reach :data:`~bonecap.phantom.mri.FOREARM_EXTEND_MM` past the
+#: elbow and the wrist, plus half a slice thickness of slice profile; the posed skin and
+#: fascia are kept this much further on each side (mm).
 _FOREARM_CROP_MARGIN_MM = 40.0
 
 
@@ -183,8 +183,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         The summary also written to ``phantom.json``.
     """
     from bonecap.markers import load_marker_set
-    from bonecap.phantom.mri import (ForearmPose, capsule_meshes, plan_stations, render_forearm_stacks,
-                                     render_stations, write_merged_labels)
+    from bonecap.phantom.mri import (FOREARM_EXTEND_MM, ForearmPose, capsule_meshes, plan_stations,
+                                     render_forearm_stacks, render_stations, write_merged_labels)
     from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
@@ -273,7 +273,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         # stays (so the images are unchanged); one face set for all twists keeps the skins'
         # common topology, which the capsule placement needs.
         L = float(np.linalg.norm(posed.wrist - posed.elbow))
-        reach = 10.0 + cfg["forearm_pitch_mm"]
+        reach = FOREARM_EXTEND_MM + cfg["forearm_pitch_mm"]     # the slices' reach, profile included
         if crop is None:
             crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
                                   L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]

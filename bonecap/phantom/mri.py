@@ -1392,9 +1392,13 @@ class ForearmPose:
             self.skin = self.layers[0][0]
 
 
+#: How far a forearm stack's slices reach past the elbow and the wrist (mm), by default.
+FOREARM_EXTEND_MM = 10.0
+
+
 def plan_forearm_stack(skin: Mesh, axis: np.ndarray, *, name: str = "forearm", index: int = 100,
                        pixel_mm: float = 0.7, pitch_mm: float = 2.5, thickness_mm: float = 2.5,
-                       margin_mm: float = 12.0, extend_mm: float = 10.0, max_radius_mm: float = 80.0,
+                       margin_mm: float = 12.0, extend_mm: float = FOREARM_EXTEND_MM, max_radius_mm: float = 80.0,
                        intensity_scale: float = 1.0) -> StationPlan:
     """A stack of slices perpendicular to the forearm axis covering the forearm.
 
