@@ -399,3 +399,55 @@ def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
             assert np.linalg.norm(line[-1] - p1) == pytest.approx(short, abs=1e-6), (bone, margin)
             u = (p1 - p0) / np.linalg.norm(p1 - p0)
             assert np.linalg.norm(np.cross(line[-1] - p0, u)) < 1e-6        # on the joint-to-joint line
+
+
+def test_fill_holes_is_scipys_binary_fill_holes():
+    """``density.fill_holes`` labels the background instead of scipy's repeated dilation: the same
+    masks on rings with noise, a mask touching the slice edge, nested rings and an empty one."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[:90, :120]
+    cases = [np.zeros((90, 120), bool)]
+    for k in range(30):
+        r = np.hypot(yy - rng.uniform(0, 90), xx - rng.uniform(0, 120))
+        ring = (r < rng.uniform(15, 40)) & (r > rng.uniform(3, 12))
+        ring |= (r < 2.5) & (k % 3 == 0)            # an island inside the hole
+        cases.append(ring ^ (rng.random(ring.shape) < 0.04))
+    n_filled = 0
+    for m in cases:
+        ours = density.fill_holes(m)
+        assert np.array_equal(ours, ndimage.binary_fill_holes(m))
+        n_filled += int(ours.sum() - m.sum())
+    assert n_filled > 1000                           # holes were there to fill
+
+
+def test_section_continuity_on_its_box_equals_the_whole_slice():
+    """``bones._continues`` dilates on the two sections' box (speed): the decision must be the
+    whole slice's, including sections at the slice's edge, far apart, and one of them empty."""
+    from scipy import ndimage
+    from skimage.morphology import disk
+
+    from bonecap.segmentation import bones
+
+    def whole_slice(cur, prev, fp, grow, min_overlap):
+        n_cur, n_prev = int(cur.sum()), int(prev.sum())
+        if n_cur > grow * n_prev + 4:
+            return False
+        if int((cur & ndimage.binary_dilation(prev, fp)).sum()) >= min_overlap * n_cur:
+            return True
+        return int((prev & ndimage.binary_dilation(cur, fp)).sum()) >= min_overlap * n_prev
+
+    rng = np.random.default_rng(11)
+    yy, xx = np.mgrid[:70, :80]
+    fp = disk(4)
+    seen = set()
+    for _ in range(300):
+        c1, c2 = rng.uniform(-5, 85, 2), rng.uniform(-5, 85, 2)
+        cur = np.hypot(yy - c1[0], xx - c1[1]) < rng.uniform(0, 12)
+        prev = np.hypot(yy - c2[0], xx - c2[1]) < rng.uniform(0, 12)
+        grow, ov = rng.uniform(1.2, 3.0), rng.uniform(0.3, 0.9)
+        want = whole_slice(cur, prev, fp, grow, ov)
+        assert bones._continues(cur, prev, fp, grow, ov) == want
+        seen.add(want)
+    assert seen == {True, False}

@@ -473,7 +473,7 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     # keep only its part above half-way to muscle, which lies inside the bone.
     core = mar & (img > 0.5 * (marrow_level + m))
     if core.any():
-        mar = ndimage.binary_fill_holes(core)
+        mar = fill_holes(core)
 
     step = 0.25
     r = np.arange(0.0, reach, step)                                      # (S,) px

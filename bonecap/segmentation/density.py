@@ -191,7 +191,13 @@ def nearest_region(candidates: np.ndarray, seed_ij, max_distance_px: float | Non
 
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:
-    """``binary_fill_holes`` of a 2-D mask, done on its bounding box (the slice is mostly empty)."""
+    """``scipy.ndimage.binary_fill_holes`` of a 2-D mask, on its bounding box (the slice is mostly empty).
+
+    The same result, computed by labelling the background (4-connected, scipy's
+    default structure) and keeping the components that reach the box's edge:
+    one pass instead of scipy's dilation from the edge repeated until nothing
+    changes, ~3x faster on a bone's box (the forearm stacks fill ~1 400 of them).
+    """
     mask = np.asarray(mask, bool)
     if not mask.any():
         return mask.copy()
@@ -199,7 +205,15 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
     jj = np.flatnonzero(mask.any(axis=0))
     box = (slice(ii[0], ii[-1] + 1), slice(jj[0], jj[-1] + 1))
     out = np.zeros_like(mask)
-    out[box] = ndimage.binary_fill_holes(mask[box])
+    sub = mask[box]
+    bg, n = ndimage.label(~sub)
+    if n == 0:
+        out[box] = sub
+        return out
+    outside = np.zeros(n + 1, dtype=bool)
+    outside[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = True
+    outside[0] = False                        # label 0 is the mask itself
+    out[box] = ~outside[bg]
     return out
 
 
