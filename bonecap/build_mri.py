@@ -584,11 +584,16 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     targets = _plausible_targets(posed, extracted, strict=labels is None and seeds is None)
     # the template is placed bone by bone already (limbs re-posed toward the MRI)
     placed_ok = labels is None and seeds is None
+    # the skull from the head's skin (its thin cortex escapes the slice rules); fitted before the warp so
+    # that the spine carried up from the pelvis meets it (see warp_skeleton's ``fixed``)
+    skull_A, skull_report = fit_skull_to_skin(posed, skin) if "skull" not in targets else (np.eye(4), None)
+    skull_fixed = {n: skull_A for n in ("skull", "mandible") if n in posed.bones and n not in targets} \
+        if skull_report is not None and skull_report["used"] else None
     if targets:
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
-                                              max_shift_mm=40.0 if placed_ok else np.inf)
+                                              max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed)
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly
@@ -601,8 +606,12 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         import warnings
 
         warnings.warn(warp_report["warning"], stacklevel=2)
-    # the skull from the head's skin (its thin cortex escapes the slice rules)
-    skull_report = skull_from_skin(personal, posed, skin) if "skull" not in targets else None
+    if skull_report is not None and (not targets or not skull_report["used"]):
+        # no warp to hand it to, or the fit was out of bounds (identity: the placed skull is kept)
+        place_skull(personal, posed, skull_A)
+    elif skull_fixed:
+        for n in skull_fixed:
+            personal.bones[n].metadata["source"] = "template fitted to the head's skin"
     lap("warp")
     bar.update()
 
@@ -1414,7 +1423,21 @@ def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone
 
 def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
                     max_residual_mm: float = 12.0) -> dict[str, Any] | None:
-    """Fit the skull (and mandible) to the head's skin (in place): what MRI bone contours miss.
+    """Fit the skull (and mandible) to the head's skin and put them in ``personal`` (in place).
+
+    :func:`fit_skull_to_skin` then :func:`place_skull`. build-subject instead hands
+    the fit to :func:`~bonecap.skeleton.warp.warp_skeleton` (``fixed``), so that
+    the carried spine meets the skull.
+    """
+    A, out = fit_skull_to_skin(posed, skin, scalp_mm=scalp_mm, max_residual_mm=max_residual_mm)
+    if out is not None:
+        place_skull(personal, posed, A)
+    return out
+
+
+def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
+                      max_residual_mm: float = 12.0) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """The skull's placement on the head's skin: what MRI bone contours miss.
 
     The skull's cortex is thin and its marrow scant, so the slice rules do not
     find it; the scalp over the cranial vault is thin and nearly uniform
@@ -1426,15 +1449,20 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
 
     Returns
     -------
-    dict or None
-        ICP residual and the affine, or ``None`` when the head is not imaged.
+    A : ndarray (4, 4)
+        Rigid map of the placed template's world (LPS) onto the skull's place;
+        the identity when the fit is not used.
+    report : dict or None
+        ICP residual, the transform and ``used`` (False, with a ``reason``,
+        when the fit was out of bounds: the placed skull is kept), or
+        ``None`` when the head is not imaged.
     """
     import trimesh
 
     from bonecap.skeleton.warp import rigid_icp
 
     if "skull" not in posed.bones or posed.bones["skull"].mesh is None or skin is None:
-        return None
+        return np.eye(4), None
     sk_world = posed.world_mesh("skull")
     tm = trimesh.Trimesh(sk_world.vertices, sk_world.faces, process=False)
     z = tm.vertices[:, 2]
@@ -1447,7 +1475,7 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
     sv, sf = skin.vertices, skin.faces
     keep_v = sv[:, 2] > cut - 10.0
     if keep_v.sum() < 100:
-        return None
+        return np.eye(4), None
     fz = keep_v[sf].all(axis=1)
     # only the head's own vertices (a target's unused vertices would still attract the ICP)
     used = np.unique(sf[fz])
@@ -1469,6 +1497,11 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
         A = np.eye(4)
     else:
         out["used"] = True
+    return A, out
+
+
+def place_skull(personal: Skeleton, posed: Skeleton, A: np.ndarray) -> None:
+    """Put the placed template's skull and mandible into ``personal``, mapped by ``A`` (in place)."""
     from bonecap.model import Bone
 
     # the rigid part of A keeps the ISB frame; the rest reshapes the mesh
@@ -1497,4 +1530,3 @@ def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: f
             joint_axes=dict(pb.joint_axes),  # frame-relative: unchanged by the rigid part
             landmarks={k: move(v[None])[0] for k, v in pb.landmarks.items()}, inner_mesh=inner,
             metadata={**pb.metadata, "source": "template fitted to the head's skin"})
-    return out

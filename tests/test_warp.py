@@ -356,3 +356,66 @@ def test_a_rigid_body_without_targets_is_carried_as_one():
     sk2, _ = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", rigid_bodies=[])
     turned = sk2.bones["hip_r"].bone_to_world[:3, :3]
     assert np.degrees(np.arccos(np.clip((np.trace(turned) - 1) / 2, -1, 1))) > 2.0
+
+
+def test_a_chain_between_the_pelvis_and_a_fixed_skull_meets_both():
+    """Vertebrae without targets between the pelvis (carried onto the femora) and a skull placed by
+    other means (``fixed``: build-subject fits it to the head's skin) are spread to meet both: a spine
+    3 % longer than the template's ends at the skull, each vertebra keeps its placed orientation and
+    moves in proportion to its height; without ``fixed`` the chain ends short of the skull."""
+    template = pelvis_template()
+    T0 = template.bones["sacrum"].bone_to_world
+    bones = dict(template.bones)
+    parent, prev_joint = "sacrum", "l5_s1"
+    bones["sacrum"] = Bone("sacrum", None, template.bones["sacrum"].mesh, T0.copy(),
+                           joint_centres={**template.bones["sacrum"].joint_centres, "l5_s1": [-40, 80, 0]})
+    names = [f"v{i}" for i in range(6)]                 # bottom to top, 40 mm apart
+    for i, n in enumerate(names):
+        s = trimesh.creation.icosphere(subdivisions=2)
+        T = T0.copy()
+        T[:3, 3] += [-40.0, 100.0 + 40.0 * i, 0.0]
+        top = f"{n}_top"
+        bones[n] = Bone(n, parent, Mesh(np.asarray(s.vertices) * [15, 12, 15], np.asarray(s.faces), n), T,
+                        joint_centres={prev_joint: [0, -20, 0], top: [0, 20, 0]})
+        parent, prev_joint = n, top
+    T = T0.copy()
+    T[:3, 3] += [-40.0, 100.0 + 40.0 * 6 + 60.0, 0.0]
+    s = trimesh.creation.icosphere(subdivisions=2)
+    bones["skull"] = Bone("skull", parent, Mesh(np.asarray(s.vertices) * 70, np.asarray(s.faces), "skull"), T,
+                          joint_centres={prev_joint: [0, -80, 0]})
+    # the chain's bones are children of the sacrum: list them after it, the skull last
+    order = ["sacrum", "hip_r", "hip_l", "femur_r", "femur_l", *names, "skull"]
+    template = Skeleton({n: bones[n] for n in order}, world="model", metadata=template.metadata)
+    shift = np.array([2.0, -3.0, 1.0])
+    targets = {n: Mesh(template.world_mesh(n).vertices + shift, template.bones[n].mesh.faces, "lps")
+               for n in ("femur_r", "femur_l")}
+    bottom = template.bones["sacrum"].landmark_in_world("l5_s1") + shift
+    top0 = template.bones["skull"].landmark_in_world(prev_joint)
+    longer = 0.03 * (top0[1] - bottom[1])               # the person's spine, 3 % longer
+    skull_map = np.eye(4)
+    skull_map[:3, 3] = shift + [1.5, longer, -2.0]
+    sk, report = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", fixed={"skull": skull_map})
+    assert report["bones"]["skull"]["source"].startswith("fixed")
+    np.testing.assert_allclose(sk.bones["skull"].bone_to_world, skull_map @ template.bones["skull"].bone_to_world,
+                               atol=1e-9)
+    # joined at both ends
+    np.testing.assert_allclose(sk.bones[names[-1]].landmark_in_world(prev_joint),
+                               sk.bones["skull"].landmark_in_world(prev_joint), atol=1e-6)
+    np.testing.assert_allclose(sk.bones[names[0]].landmark_in_world("l5_s1"),
+                               sk.bones["sacrum"].landmark_in_world("l5_s1"), atol=1e-6)
+    top = _apply_map(skull_map, top0)
+    for i, n in enumerate(names):
+        move = sk.bones[n].bone_to_world @ np.linalg.inv(template.bones[n].bone_to_world)
+        np.testing.assert_allclose(move[:3, :3] @ move[:3, :3].T, np.eye(3), atol=1e-9)   # rigid frame
+        np.testing.assert_allclose(move[:3, :3], np.eye(3), atol=1e-9)                   # placed orientation
+        f = (template.bones[n].bone_to_world[1, 3] - bottom[1] + shift[1]) / (top0[1] - bottom[1] + shift[1])
+        expected = shift + f * (top - top0 - shift)
+        np.testing.assert_allclose(move[:3, 3], expected, atol=0.3)
+    # without the fixed skull the chain is carried up from the pelvis alone: its top misses the skull
+    sk2, _ = warp_skeleton(template, targets, init=np.eye(4), start_from="placed")
+    gap = np.linalg.norm(sk2.bones[names[-1]].landmark_in_world(prev_joint) - top)
+    assert gap > 0.9 * longer
+
+
+def _apply_map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return T[:3, :3] @ p + T[:3, 3]

@@ -675,7 +675,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0,
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
-                  rigid_bodies=None) -> tuple[Skeleton, dict[str, Any]]:
+                  rigid_bodies=None, fixed=None) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -755,6 +755,15 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         template's ``metadata["rigid_bodies"]``, the pelvis for bonecap's
         template). A group none of whose bones has a target is carried as one
         rigid body onto all the joints it shares with the others.
+    fixed : dict of str -> ndarray (4, 4), optional
+        Bones placed by other means, each with its template world -> target
+        world map (build-subject: the skull and mandible fitted to the head's
+        skin). They are carried with it, and their joints anchor the chain of
+        carried bones below them: the chain (the vertebrae between the skull
+        and the pelvis carried onto the hips) is carried up from its anchored
+        end, then the mismatch at the fixed bone is spread along it linearly
+        in arc length over its joints and the chain is carried again, so a
+        spine longer or shorter than the template's proportions meets both ends.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -869,46 +878,92 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         if len(g) > 1 and not any(b in results for b in g):
             for b in g:
                 body_of[b] = g
-    carried: dict[str, np.ndarray] = {}
-    kept_placed: list[str] = []
-    for name, bone in template.bones.items():
-        if name in results or name in carried:
-            continue
-        body = body_of.get(name, (name,))
-        A, B = [], []
-        for b in body:
-            for k in template.bones[b].joint_centres:
-                if (b, k) in joint_pos:
-                    A.append(template.bones[b].landmark_in_world(k))
-                    B.append(joint_pos[(b, k)])
-        rel = _nearest_relative(template, name, results, carried)
-        # a placed template: the bone's own placed pose, corrected onto its warped joints
-        M = init if start_from == "placed" or rel is None else rel
-        M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3), rigid=len(body) > 1,
-                   keep_rotation=len(body) > 1 and start_from == "placed")
-        if start_from == "placed" and any(template.bones[b].mesh is not None for b in body):
-            # joints borrowed from badly warped neighbours must not throw a placed
-            # bone across the body: beyond the same bounds as an own target, keep it placed
-            fake = {"T_rigid": np.eye(4), "T_affine": M, "affine_residual_mm": np.zeros(1)}
-            c = np.concatenate([_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
-                                for b in body if template.bones[b].mesh is not None]).mean(axis=0)
-            moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
-            R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
-            turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
-            if moved > max_shift_mm or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
-                M = np.asarray(init, float).copy()
-                kept_placed.extend(body)
-        for b in body:
-            carried[b] = M
-        # the joints it shares only with other carried bones follow it
-        for b in body:
-            for k in template.bones[b].joint_centres:
-                if (b, k) not in joint_pos:
-                    p = _apply(M, template.bones[b].landmark_in_world(k)[None])[0]
+    fixed = {} if fixed is None else {n: np.asarray(T, dtype=float) for n, T in fixed.items()}
+    for n, T in fixed.items():
+        if n not in template.bones or T.shape != (4, 4):
+            raise ValueError(f"fixed: {n!r} must be a template bone with a 4x4 transform")
+        if n in results:
+            raise ValueError(f"fixed: {n!r} has its own target; a bone is either warped or fixed")
+    known = dict(joint_pos)                   # joints placed by warped bones
+
+    def carry_all(joint_pos: dict, keep: frozenset = frozenset()) -> tuple[dict[str, np.ndarray], list[str]]:
+        """Every bone without a result carried (or fixed), in template order; fills ``joint_pos``.
+        Bones in ``keep`` keep their carried rotation (moved and stretched onto their joints only)."""
+        carried: dict[str, np.ndarray] = {}
+        kept_placed: list[str] = []
+        for name, bone in template.bones.items():
+            if name in results or name in carried:
+                continue
+            if name in fixed:                 # placed by other means (the skull on the head's skin)
+                carried[name] = fixed[name]
+                for k in template.bones[name].joint_centres:
+                    p = _apply(fixed[name], template.bones[name].landmark_in_world(k)[None])[0]
                     for g in groups:
-                        if (b, k) in g:
+                        if (name, k) in g:
                             for e in g:
                                 joint_pos.setdefault(e, p)
+                continue
+            body = body_of.get(name, (name,))
+            A, B = [], []
+            for b in body:
+                for k in template.bones[b].joint_centres:
+                    if (b, k) in joint_pos:
+                        A.append(template.bones[b].landmark_in_world(k))
+                        B.append(joint_pos[(b, k)])
+            rel = _nearest_relative(template, name, results, carried)
+            # a placed template: the bone's own placed pose, corrected onto its warped joints
+            M = init if start_from == "placed" or rel is None else rel
+            M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3), rigid=len(body) > 1,
+                       keep_rotation=(len(body) > 1 and start_from == "placed") or name in keep)
+            if start_from == "placed" and any(template.bones[b].mesh is not None for b in body):
+                # joints borrowed from badly warped neighbours must not throw a placed
+                # bone across the body: beyond the same bounds as an own target, keep it placed
+                fake = {"T_rigid": np.eye(4), "T_affine": M, "affine_residual_mm": np.zeros(1)}
+                c = np.concatenate([_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
+                                    for b in body if template.bones[b].mesh is not None]).mean(axis=0)
+                moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
+                R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
+                turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
+                if moved > max_shift_mm or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
+                    M = np.asarray(init, float).copy()
+                    kept_placed.extend(body)
+            for b in body:
+                carried[b] = M
+            # the joints it shares only with other carried bones follow it
+            for b in body:
+                for k in template.bones[b].joint_centres:
+                    if (b, k) not in joint_pos:
+                        p = _apply(M, template.bones[b].landmark_in_world(k)[None])[0]
+                        for g in groups:
+                            if (b, k) in g:
+                                for e in g:
+                                    joint_pos.setdefault(e, p)
+
+        return carried, kept_placed
+
+    carried, kept_placed = carry_all(joint_pos)
+    # A chain of carried bones between a fixed bone and the first anchored ancestor (the cervical,
+    # thoracic and lumbar vertebrae between the skull fitted to the head's skin and the pelvis carried
+    # onto the hips) was carried up from the bottom alone, with the template's proportions: its top
+    # missed the fixed bone by the person's difference in spine length. The mismatch is spread along
+    # the chain (linearly in arc length over its joints) and the bones are carried again, keeping the
+    # rotations they were carried with: the spread is a smooth shift, and turning each vertebra onto
+    # its shifted joints tilted them by its slope (0.2 deg on a phantom whose vertebrae were right).
+    chains = _chains_to_fixed(template, fixed, results, body_of, known, groups)
+    if chains:
+        seeded = dict(known)
+        for chain, _ in chains:
+            pts = np.array([joint_pos[g[0]] for g in chain])          # as carried: bottom to top
+            top_bone, top_joint = next((b, k) for b, k in chain[-1] if b in fixed)
+            top = _apply(fixed[top_bone], template.bones[top_bone].landmark_in_world(top_joint)[None])[0]
+            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+            frac = arc / max(arc[-1], 1e-9)
+            # the bottom joint is left to its anchor (carried again the same way); the others move
+            for g, p, f in zip(chain[1:], pts[1:], frac[1:]):
+                for e in g:
+                    seeded[e] = p + f * (top - pts[-1])
+        joint_pos = seeded
+        carried, kept_placed = carry_all(joint_pos, frozenset(b for _, bones in chains for b in bones))
 
     def bone_map(name: str, p: np.ndarray) -> np.ndarray:
         return own_map(name, p) if name in results else _apply(carried[name], p)
@@ -953,7 +1008,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 else A[:3, :3]
             axes[k] = R.T @ (J @ (bone.bone_to_world[:3, :3] @ ax))
         meta = dict(bone.metadata)
-        meta["personalized"] = "own target" if name in results else "neighbours"
+        meta["personalized"] = "own target" if name in results else "fixed" if name in fixed else "neighbours"
         new_bones[name] = Bone(name=name, parent=bone.parent, mesh=mp(bone.mesh), bone_to_world=T,
                                joint_centres=jc, joint_axes=axes, landmarks=lm, inner_mesh=mp(bone.inner_mesh),
                                metadata=meta)
@@ -975,7 +1030,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 "flags": r["flags"],
             }
         else:
-            report_bones[name] = {"source": ("placed template (neighbours' joints out of bounds)"
+            report_bones[name] = {"source": ("fixed (given)" if name in fixed else
+                                             "placed template (neighbours' joints out of bounds)"
                                              if name in kept_placed else "neighbours")
                                   + (f" (own target rejected: {rejected[name]})" if name in rejected else ""),
                                   "n_features": 0, "residual_mean_mm": None,
@@ -1037,6 +1093,48 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
     else:
         C[:3, 3] = B.mean(0) - MA.mean(0)
     return C @ M
+
+
+def _chains_to_fixed(sk: Skeleton, fixed: dict, results: dict, body_of: dict, known: dict,
+                     groups: list) -> list[tuple[list[list[tuple[str, str]]], list[str]]]:
+    """The joints of each chain of carried bones below a fixed bone, bottom to top, and its bones.
+
+    From a fixed bone down its ancestors (the skull, c1, c2, ... l5) to the first
+    that is anchored: warped, fixed, or one of a rigid body with at least two
+    joints placed by warped bones (the pelvis on the femora's hip centres). A
+    chain is returned as the joint groups between consecutive bones, from the
+    anchor's joint to the fixed bone's, with the bones between (neither the
+    fixed bone nor the anchor); none when the fixed bone's parent is anchored
+    already or no anchor lies below.
+    """
+    group_of = {e: gi for gi, g in enumerate(groups) for e in g}
+
+    def anchored(b: str) -> bool:
+        if b in results or b in fixed:
+            return True
+        body = body_of.get(b)
+        return body is not None and sum((bb, k) in known for bb in body for k in sk.bones[bb].joint_centres) >= 2
+
+    chains = []
+    for f in fixed:
+        seq = [f]
+        b = sk.bones[f].parent
+        while b is not None and not anchored(b):
+            seq.append(b)
+            b = sk.bones[b].parent
+        if b is None or len(seq) < 2:
+            continue
+        seq.append(b)
+        joints = []
+        for child, parent in zip(seq[:-1], seq[1:]):
+            shared = {group_of[(child, k)] for k in sk.bones[child].joint_centres
+                      if any(e[0] == parent for e in groups[group_of[(child, k)]])}
+            if len(shared) != 1:
+                break
+            joints.append(groups[shared.pop()])
+        else:
+            chains.append((joints[::-1], seq[1:-1]))
+    return chains
 
 
 def _nearest_relative(sk: Skeleton, name: str, results: dict, carried: dict) -> np.ndarray | None:
