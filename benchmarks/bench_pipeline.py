@@ -12,6 +12,11 @@ Every step runs as its own ``bonecap`` process, as a user would run it.
 Usage::
 
     python benchmarks/bench_pipeline.py --seeds 1 --work /tmp/bench_pipeline [--phantom /tmp/ph_default]
+        [--marker-capsules]
+
+``--marker-capsules`` follows the paper's protocol: the phantoms image an 8 mm oil capsule under
+every marker (``bonecap phantom --marker-capsules``), which build-subject finds and places the
+markers on. A reused ``--phantom`` must have been made that way too.
 """
 
 from __future__ import annotations
@@ -83,6 +88,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[1])
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_pipeline"))
     ap.add_argument("--phantom", type=Path, help="reuse this phantom folder (for the first seed)")
+    ap.add_argument("--marker-capsules", action="store_true",
+                    help="the paper's protocol: phantoms made with an oil capsule imaged under every marker")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     summary = {}
@@ -91,7 +98,8 @@ def main() -> None:
         w.mkdir(exist_ok=True)
         ph = args.phantom if (args.phantom and n == 0) else w / "phantom"
         if not (ph / "truth").is_dir():
-            run(["phantom", "-o", ph, "--seed", seed], w / "phantom.log")
+            run(["phantom", "-o", ph, "--seed", seed] + (["--marker-capsules"] if args.marker_capsules else []),
+                w / "phantom.log")
         truth = ph / "truth"
         stations = sorted((ph / "mri").glob("station_*"))
         forearm = sorted((ph / "mri").glob("forearm_*"), key=lambda p: float(p.name.split("_")[1]))
