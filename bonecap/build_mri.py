@@ -285,9 +285,9 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     16 mm short, one phantom's radius lost its styloid's end and came out
     27.6 mm off in the trials, 11.0 before).
     """
-    from bonecap.skeleton.warp import _joint_groups
+    from bonecap.skeleton.kinematics import joint_groups
 
-    group_of = {e: g for g in _joint_groups(template) for e in g}
+    group_of = {e: g for g in joint_groups(template) for e in g}
     out = {}
     for name in bones:
         b = template.bones.get(name)

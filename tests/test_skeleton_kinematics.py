@@ -68,3 +68,29 @@ def test_bad_input(rajagopal):
         proximal_joint(skel, "pelvis")
     with pytest.raises(ValueError, match="rotation"):
         pose_skeleton(skel, np.eye(4), {"femur_r": np.zeros((1, 4))})
+
+
+def test_joint_groups_join_names_with_side_suffixes_at_one_place():
+    """``joint_groups``: the sacrum's ``sacroiliac_r`` and the right hip bone's ``sacroiliac`` are one
+    joint; the left ones another; one name at two places is two joints; a one-bone joint is alone."""
+    from bonecap.model import Bone, Skeleton
+    from bonecap.skeleton.kinematics import joint_groups
+
+    eye = np.eye(4)
+    sk = Skeleton({
+        "sacrum": Bone("sacrum", None, None, eye, joint_centres={"sacroiliac_r": [0, 0, 40],
+                                                                 "sacroiliac_l": [0, 0, -40], "l5_s1": [0, 50, 0]}),
+        "hip_r": Bone("hip_r", "sacrum", None, eye, joint_centres={"sacroiliac": [0, 0, 40.5], "hip": [0, -80, 90]}),
+        "hip_l": Bone("hip_l", "sacrum", None, eye, joint_centres={"sacroiliac": [0, 0, -40], "hip": [0, -80, -90]}),
+        "femur_r": Bone("femur_r", "hip_r", None, eye, joint_centres={"hip": [0, -80, 90]}),
+        "femur_l": Bone("femur_l", "hip_l", None, eye, joint_centres={"hip": [0, -80, -60]}),   # 30 mm off
+    }, world="model")
+    groups = {frozenset(g) for g in joint_groups(sk)}
+    assert frozenset({("sacrum", "sacroiliac_r"), ("hip_r", "sacroiliac")}) in groups
+    assert frozenset({("sacrum", "sacroiliac_l"), ("hip_l", "sacroiliac")}) in groups
+    assert frozenset({("hip_r", "hip"), ("femur_r", "hip")}) in groups
+    assert frozenset({("hip_l", "hip")}) in groups and frozenset({("femur_l", "hip")}) in groups
+    assert frozenset({("sacrum", "l5_s1")}) in groups
+    assert sum(len(g) for g in groups) == 9
+    with pytest.raises(ValueError):
+        joint_groups(sk, tol_mm=-1.0)

@@ -932,7 +932,7 @@ def _individual_bone_shapes(sk: Skeleton, spec: dict[str, Any] | None) -> Skelet
 def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.ndarray]]) -> Skeleton:
     """A new skeleton whose bones' own-frame geometry is mapped by ``maps`` and whose poses follow the joints."""
     from bonecap.model import Bone
-    from bonecap.skeleton.warp import _joint_groups
+    from bonecap.skeleton.kinematics import joint_groups
 
     # the joint each bone shares with its parent: the same name, or the parent's side-suffixed one (a hip
     # bone's ``sacroiliac`` is the sacrum's ``sacroiliac_r``, a rib's ``costovertebral5`` its vertebra's
@@ -940,7 +940,7 @@ def _apply_bone_maps(sk: Skeleton, maps: dict[str, Callable[[np.ndarray], np.nda
     # (mid-ASIS, where neither bone's shape field is tapered to zero), a hip bone came off the sacrum by up
     # to 15 mm: seed 2's hip bones met neither the sacrum nor each other at the pubic symphysis.
     shared: dict[str, list[tuple[str, str]]] = {}
-    for g in _joint_groups(sk):
+    for g in joint_groups(sk):
         for b1, k1 in g:
             shared.setdefault(b1, []).extend((k1, k2) for b2, k2 in g if sk.bones[b1].parent == b2)
     new: dict[str, Bone] = {}

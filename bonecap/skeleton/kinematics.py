@@ -18,11 +18,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["proximal_joint", "pose_skeleton", "PIVOT_JOINTS", "HINGE_JOINTS"]
+__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "PIVOT_JOINTS", "HINGE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
@@ -44,6 +45,51 @@ PIVOT_JOINTS = ("proximal_radioulnar",)
 #: OpenSim model's pin joints) and a bone's markers cannot hold it on ball joints
 #: (:func:`bonecap.motion.lsq.plan_segments`).
 HINGE_JOINTS = ("elbow", "radioulnar")
+
+
+def joint_groups(skeleton: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str, str]]]:
+    """Joint centres that are one joint, as groups of ``(bone, joint name)``.
+
+    Two bones list the same joint when the names match, or one is the other
+    with a side suffix (the sacrum's ``sacroiliac_r`` and the right hip bone's
+    ``sacroiliac``), and the two centres lie within ``tol_mm`` of each other
+    in the skeleton's world. Used wherever a joint must be one place: the
+    warp's shared joint centres, the phantom's bones re-placed on their
+    parents' joints, build-subject's bone seeds across a joint.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    tol_mm : float
+        Largest distance between two listings of one joint (mm).
+
+    Returns
+    -------
+    list of list of (str, str)
+        Every joint centre of every bone in exactly one group (a joint
+        listed by one bone only is a group of one).
+    """
+    if not tol_mm >= 0:
+        raise ValueError(f"tol_mm must be >= 0, got {tol_mm}")
+    entries = [(b, k) for b, bone in skeleton.bones.items() for k in bone.joint_centres]
+    pos = np.array([skeleton.bones[b].landmark_in_world(k) for b, k in entries]) if entries else np.zeros((0, 3))
+    parent = list(range(len(entries)))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    if entries:
+        for i, j in cKDTree(pos).query_pairs(tol_mm):
+            (bi, ki), (bj, kj) = entries[i], entries[j]
+            if bi != bj and (ki == kj or ki.startswith(kj + "_") or kj.startswith(ki + "_")):
+                parent[find(i)] = find(j)
+    groups: dict[int, list[tuple[str, str]]] = {}
+    for i, e in enumerate(entries):
+        groups.setdefault(find(i), []).append(e)
+    return list(groups.values())
 
 
 def proximal_joint(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) -> tuple[str, np.ndarray, np.ndarray]:

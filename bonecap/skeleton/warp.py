@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from bonecap.model import Bone, Mesh, Skeleton
 from bonecap.skeleton.isb import refresh_isb_frames
+from bonecap.skeleton.kinematics import joint_groups
 
 __all__ = ["rigid_icp", "affine_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
            "warp_skeleton"]
@@ -571,30 +572,6 @@ def initial_transform(template: Skeleton, targets: dict[str, Mesh], bones=None) 
     return _kabsch(A, B, scale=True)
 
 
-def _joint_groups(sk: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str, str]]]:
-    """Joint centres that are one joint: same name (or one name with a side suffix, ``sacroiliac_r``) and
-    within ``tol_mm`` of each other in the template world."""
-    entries = [(b, k) for b, bone in sk.bones.items() for k in bone.joint_centres]
-    pos = np.array([sk.bones[b].landmark_in_world(k) for b, k in entries]) if entries else np.zeros((0, 3))
-    parent = list(range(len(entries)))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    if entries:
-        for i, j in cKDTree(pos).query_pairs(tol_mm):
-            (bi, ki), (bj, kj) = entries[i], entries[j]
-            if bi != bj and (ki == kj or ki.startswith(kj + "_") or kj.startswith(ki + "_")):
-                parent[find(i)] = find(j)
-    groups: dict[int, list[tuple[str, str]]] = {}
-    for i, e in enumerate(entries):
-        groups.setdefault(find(i), []).append(e)
-    return list(groups.values())
-
-
 def _default_widths(extent: float, spacing: float) -> list[float]:
     """Coarse-to-fine Gaussian widths for a bone of size ``extent`` with feature points ``spacing`` apart.
 
@@ -845,7 +822,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         return r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
 
     # joint centres: one position per joint
-    groups = _joint_groups(template)
+    groups = joint_groups(template)
     joint_pos: dict[tuple[str, str], np.ndarray] = {}
     trees: dict[str, cKDTree] = {}
     for g in groups:
