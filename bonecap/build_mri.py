@@ -1421,20 +1421,6 @@ def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone
     return rigid_icp(pts, surface, init=best[0])
 
 
-def skull_from_skin(personal: Skeleton, posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
-                    max_residual_mm: float = 12.0) -> dict[str, Any] | None:
-    """Fit the skull (and mandible) to the head's skin and put them in ``personal`` (in place).
-
-    :func:`fit_skull_to_skin` then :func:`place_skull`. build-subject instead hands
-    the fit to :func:`~bonecap.skeleton.warp.warp_skeleton` (``fixed``), so that
-    the carried spine meets the skull.
-    """
-    A, out = fit_skull_to_skin(posed, skin, scalp_mm=scalp_mm, max_residual_mm=max_residual_mm)
-    if out is not None:
-        place_skull(personal, posed, A)
-    return out
-
-
 def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
                       max_residual_mm: float = 12.0) -> tuple[np.ndarray, dict[str, Any] | None]:
     """The skull's placement on the head's skin: what MRI bone contours miss.

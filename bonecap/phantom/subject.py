@@ -311,11 +311,12 @@ class PhantomSubject:
         ----------
         world_to : ndarray (4, 4), optional
             A transform from the world frame (e.g. model -> LPS) applied to
-            every layer; the layers then share the faces arrays of the
-            subject's meshes instead of copying them (they are for reading:
-            the whole-body set's faces are ~20 MB at the default preset).
+            every layer. The layers share the faces arrays of the subject's
+            meshes rather than copying them (they are for reading: the
+            whole-body set's faces are ~20 MB at the default preset).
         frame : str
-            Frame name of the transformed layers.
+            Frame name of the transformed layers (without ``world_to``: the
+            skeleton's world).
 
         Returns
         -------
@@ -326,17 +327,9 @@ class PhantomSubject:
             frame, or mapped by ``world_to``. Later layers overwrite earlier
             ones, so a bone without an inner mesh renders as solid cortex.
         """
-        if world_to is None:
-            out: list[tuple[Mesh, str]] = [(self.skin, "fat"), (self.muscle, "muscle")]
-            for name, bone in self.skeleton.bones.items():
-                if bone.mesh is None:
-                    continue
-                out.append((self.skeleton.world_mesh(name), "cortex"))
-                if bone.inner_mesh is not None:
-                    out.append((bone.inner_mesh.transformed(bone.bone_to_world, self.skeleton.world), "marrow"))
-            return out
-
-        T_w = np.asarray(world_to, dtype=float)
+        # every layer is a new mesh over the subject's own faces array (they are for reading)
+        T_w = np.eye(4) if world_to is None else np.asarray(world_to, dtype=float)
+        frame = self.skeleton.world if world_to is None else frame
 
         def mapped(mesh: Mesh, bone_to_world: np.ndarray | None = None) -> Mesh:
             v = mesh.vertices

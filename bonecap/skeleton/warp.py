@@ -863,6 +863,16 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
             raise ValueError(f"fixed: {n!r} has its own target; a bone is either warped or fixed")
     known = dict(joint_pos)                   # joints placed by warped bones
 
+    group_of = {e: g for g in groups for e in g}
+
+    def follow(b: str, M: np.ndarray, joint_pos: dict) -> None:
+        """Bone ``b`` moved by ``M``: its joints not placed yet, and every bone's listing of them, go with it."""
+        for k in template.bones[b].joint_centres:
+            if (b, k) not in joint_pos:
+                p = _apply(M, template.bones[b].landmark_in_world(k)[None])[0]
+                for e in group_of[(b, k)]:
+                    joint_pos.setdefault(e, p)
+
     def carry_all(joint_pos: dict, keep: frozenset = frozenset()) -> tuple[dict[str, np.ndarray], list[str]]:
         """Every bone without a result carried (or fixed), in template order; fills ``joint_pos``.
         Bones in ``keep`` keep their carried rotation (moved and stretched onto their joints only)."""
@@ -873,12 +883,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 continue
             if name in fixed:                 # placed by other means (the skull on the head's skin)
                 carried[name] = fixed[name]
-                for k in template.bones[name].joint_centres:
-                    p = _apply(fixed[name], template.bones[name].landmark_in_world(k)[None])[0]
-                    for g in groups:
-                        if (name, k) in g:
-                            for e in g:
-                                joint_pos.setdefault(e, p)
+                follow(name, fixed[name], joint_pos)
                 continue
             body = body_of.get(name, (name,))
             A, B = [], []
@@ -908,14 +913,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 carried[b] = M
             # the joints it shares only with other carried bones follow it
             for b in body:
-                for k in template.bones[b].joint_centres:
-                    if (b, k) not in joint_pos:
-                        p = _apply(M, template.bones[b].landmark_in_world(k)[None])[0]
-                        for g in groups:
-                            if (b, k) in g:
-                                for e in g:
-                                    joint_pos.setdefault(e, p)
-
+                follow(b, M, joint_pos)
         return carried, kept_placed
 
     carried, kept_placed = carry_all(joint_pos)
@@ -926,7 +924,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     # the chain (linearly in arc length over its joints) and the bones are carried again, keeping the
     # rotations they were carried with: the spread is a smooth shift, and turning each vertebra onto
     # its shifted joints tilted them by its slope (0.2 deg on a phantom whose vertebrae were right).
-    chains = _chains_to_fixed(template, fixed, results, body_of, known, groups)
+    chains = _chains_to_fixed(template, fixed, results, body_of, known, group_of)
     if chains:
         seeded = dict(known)
         for chain, _ in chains:
@@ -1073,7 +1071,7 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
 
 
 def _chains_to_fixed(sk: Skeleton, fixed: dict, results: dict, body_of: dict, known: dict,
-                     groups: list) -> list[tuple[list[list[tuple[str, str]]], list[str]]]:
+                     group_of: dict) -> list[tuple[list[list[tuple[str, str]]], list[str]]]:
     """The joints of each chain of carried bones below a fixed bone, bottom to top, and its bones.
 
     From a fixed bone down its ancestors (the skull, c1, c2, ... l5) to the first
@@ -1084,8 +1082,6 @@ def _chains_to_fixed(sk: Skeleton, fixed: dict, results: dict, body_of: dict, kn
     fixed bone nor the anchor); none when the fixed bone's parent is anchored
     already or no anchor lies below.
     """
-    group_of = {e: gi for gi, g in enumerate(groups) for e in g}
-
     def anchored(b: str) -> bool:
         if b in results or b in fixed:
             return True
@@ -1104,11 +1100,11 @@ def _chains_to_fixed(sk: Skeleton, fixed: dict, results: dict, body_of: dict, kn
         seq.append(b)
         joints = []
         for child, parent in zip(seq[:-1], seq[1:]):
-            shared = {group_of[(child, k)] for k in sk.bones[child].joint_centres
-                      if any(e[0] == parent for e in groups[group_of[(child, k)]])}
+            shared = {id(group_of[(child, k)]): group_of[(child, k)] for k in sk.bones[child].joint_centres
+                      if any(e[0] == parent for e in group_of[(child, k)])}
             if len(shared) != 1:
                 break
-            joints.append(groups[shared.pop()])
+            joints.append(shared.popitem()[1])
         else:
             chains.append((joints[::-1], seq[1:-1]))
     return chains
