@@ -38,7 +38,7 @@ import numpy as np
 from bonecap.errors import DataError, InputError
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
-from bonecap.parallel import fork_map
+from bonecap.parallel import Pending, default_workers, fork_map, fork_start
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "load_seeds", "build_from_mri",
            "SEGMENTED_BONES"]
@@ -622,16 +622,26 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
                                   "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
                                   "static": str(static) if static else None,
                                   "seeds": str(seeds) if seeds else "template (affine to the body)"})
-    marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static)
+    # the forearm stacks' registrations need the personal bones, not the markers: started first, they run
+    # in worker processes while the markers are placed here (the workers see the skeleton as it is now)
+    registering = None
+    if forearm_poses:
+        side = _stack_side(forearm_poses[0], personal)
+        registering = start_forearm_registration(list(forearm_poses), personal, side)
+    try:
+        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static)
+    except BaseException:
+        if registering is not None:
+            registering.close()
+        raise
     lap("markers")
     bar.update()
     forearm_report = None
     if forearm_poses:
         bar.set_postfix_str("forearm")
-        side = _stack_side(forearm_poses[0], personal)
         try:
             model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side,
-                                                            markers=subject.markers)
+                                                            markers=subject.markers, registered=registering)
             subject.forearm = {side: model}
         except DataError as exc:
             # the stacks could not be read as three poses of this forearm: the
@@ -1040,7 +1050,8 @@ def _stack_side(path, personal: Skeleton) -> str:
 
 
 def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                            max_icp_mm: float = 6.0, markers=None) -> tuple[dict[str, Any], dict[str, Any]]:
+                            max_icp_mm: float = 6.0, markers=None, registered: Pending | None = None
+                            ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
     For each stack: the humerus, ulna and radius are segmented with the
@@ -1074,6 +1085,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         A bone whose registration leaves a larger mean residual is not in that stack: error.
     markers : mapping of str -> MarkerBinding, optional
         The subject's markers (bone, position in the bone frame).
+    registered : Pending, optional
+        The stacks' registrations already started (:func:`start_forearm_registration`
+        with the same ``dirs``, ``personal``, ``side`` and ``max_icp_mm``).
 
     Returns
     -------
@@ -1100,9 +1114,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     names = FOREARM_MARKERS[side]
     use_markers = markers is not None and all(n in markers and markers[n].bone in personal.bones for n in names)
     poses, report = [], {"stacks": {}, "capsules": {}}
-    # the three stacks are independent: registered in worker processes where there are cores
-    registered = fork_map(lambda d: _register_stack(d, personal, side, max_icp_mm), dirs)
-    for d, (Ts, stack_report, capsules) in zip(dirs, registered):
+    if registered is None:
+        registered = start_forearm_registration(dirs, personal, side, max_icp_mm)
+    for d, (Ts, stack_report, capsules) in zip(dirs, registered.result()):
         report["stacks"][str(d)] = stack_report
         if use_markers:
             # each marker rides on its bone's registration in this stack; the ones on the humerus
@@ -1138,6 +1152,21 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     report["twist_from"] = "markers" if use_markers else "landmarks"
     report["used"] = True
     return out, report
+
+
+def start_forearm_registration(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
+                               max_icp_mm: float = 6.0) -> Pending:
+    """Start registering the personal forearm bones into each stack, in worker processes.
+
+    The stacks are independent of each other and of the markers: build-subject
+    starts them before it places the markers and hands the result to
+    :func:`fit_forearm_from_stacks` (``registered``). All three run at once even
+    on two cores (two rounds of one and two stacks take 2/3 of the serial
+    time, three processes sharing two cores about half of it). The workers see
+    ``personal`` as it is now.
+    """
+    return fork_start(lambda d: _register_stack(d, personal, side, max_icp_mm), list(dirs),
+                      workers=len(dirs) if default_workers() > 1 else 1)
 
 
 def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
@@ -1370,19 +1399,36 @@ def _radius_turn(volume: Volume, axis_points: np.ndarray, ulna_move: np.ndarray,
     if ax is None or len(axis_points) < 2:
         return None
     pts = np.asarray(axis_points, float) @ ulna_move[:3, :3].T + ulna_move[:3, 3]
-    data = np.asarray(volume.data, np.float32)
+    shape = np.array(volume.data.shape)
+    turns = [_turn_about(ax[0], ax[1], ang) for ang in np.arange(0.0, 360.0, step_deg)]
+    at = [volume.world_to_index(pts @ R[:3, :3].T + R[:3, 3]) for R in turns]
+    # Only the box the turned points sweep is sampled: the image (and the depth under the skin) on that box
+    # and a margin beyond min_depth_mm, so that a background voxel within min_depth_mm of a sampled voxel is
+    # in it -- the same depths there as on the whole stack, for a fraction of the distance transform.
+    spacing = np.asarray(volume.spacing, float)
+    margin = np.ceil(min_depth_mm / spacing).astype(int) + 2
+    every = np.concatenate(at)
+    lo = np.clip(np.floor(every.min(axis=0)).astype(int) - margin, 0, shape)
+    hi = np.clip(np.ceil(every.max(axis=0)).astype(int) + 2 + margin, 0, shape)
+    if np.any(hi <= lo):
+        return None
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    data = np.asarray(volume.data[box], np.float32)
     if body_mask is not None:
-        # depth under the skin, in mm (voxel spacing per axis)
-        deep = distance_transform_edt(np.asarray(body_mask, bool), sampling=volume.spacing) >= min_depth_mm
+        body = np.asarray(body_mask[box], bool)
+        if body.all():              # no skin within reach of the box: every voxel in it is deep
+            deep = body
+        else:
+            # depth under the skin, in mm (voxel spacing per axis)
+            deep = distance_transform_edt(body, sampling=spacing) >= min_depth_mm
         data = np.where(deep, data, 0.0).astype(np.float32)
     best, best_score = None, -np.inf
-    for ang in np.arange(0.0, 360.0, step_deg):
-        R = _turn_about(ax[0], ax[1], ang)
-        ijk = volume.world_to_index(pts @ R[:3, :3].T + R[:3, 3])
-        inside = ((ijk >= -0.5) & (ijk <= np.array(data.shape) - 0.5)).all(axis=1)
+    for R, ijk in zip(turns, at):
+        inside = ((ijk >= -0.5) & (ijk <= shape - 0.5)).all(axis=1)
         if inside.sum() < len(pts) // 2:
             continue
-        vals = map_coordinates(data, ijk[inside].T, order=1, mode="nearest")
+        # mode "nearest" clamps at the stack's edge as before: the box reaches it wherever a point is near
+        vals = map_coordinates(data, (ijk[inside] - lo).T, order=1, mode="nearest")
         score = float(np.median(vals))
         if score > best_score:
             best, best_score = R @ ulna_move, score

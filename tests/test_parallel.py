@@ -52,3 +52,52 @@ def test_no_nesting():
     inner = fork_map(lambda i: fork_map(lambda j: os.getpid(), range(3), workers=2), range(2), workers=2)
     for pids in inner:                 # each worker ran its inner map itself
         assert len(set(pids)) == 1
+
+
+def test_fork_start_runs_beside_the_caller_on_a_snapshot():
+    """The workers start at once and see the caller's data as it was then; the caller goes on (and may
+    run a fork_map of its own meanwhile); result() gives the results in order."""
+    import time
+
+    from bonecap.parallel import fork_start
+
+    data = {"x": 1.0}
+
+    def work(i):
+        time.sleep(0.3)
+        return i, data["x"], os.getpid()
+
+    t0 = time.perf_counter()
+    pending = fork_start(work, range(3), workers=3)
+    data["x"] = 2.0                                   # after the fork: the workers keep 1.0
+    inner = fork_map(lambda i: i * i, range(4), workers=2)
+    out = pending.result()
+    assert inner == [0, 1, 4, 9]
+    assert [o[0] for o in out] == [0, 1, 2] and all(o[1] == 1.0 for o in out)
+    assert all(o[2] != os.getpid() for o in out)
+    assert time.perf_counter() - t0 < 0.85          # three 0.3 s items at once, not one after the other
+    assert pending.result() is out                    # asked twice: the same list
+
+
+def test_fork_start_serial_runs_at_result_and_close_drops_the_work(monkeypatch):
+    from bonecap.parallel import fork_start
+
+    calls = []
+    monkeypatch.setenv("BONECAP_WORKERS", "1")
+    pending = fork_start(lambda i: calls.append(i) or i, range(3))
+    assert calls == []                                # nothing ran yet: the caller's work comes first
+    assert pending.result() == [0, 1, 2] and calls == [0, 1, 2]
+    monkeypatch.delenv("BONECAP_WORKERS")
+    stopped = fork_start(lambda i: (_ for _ in ()).throw(DataError("never seen")), range(2), workers=2)
+    stopped.close()                                   # an error elsewhere: the workers are stopped
+    with pytest.raises(DataError, match="never seen"):
+        stopped.result()                              # asked anyway: the work is done here, errors and all
+
+
+def test_workers_run_blas_single_threaded():
+    from threadpoolctl import threadpool_info
+
+    def blas_threads(_):
+        return max((d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"), default=1)
+
+    assert fork_map(blas_threads, range(2), workers=2) == [1, 1]

@@ -422,6 +422,33 @@ def test_fill_holes_is_scipys_binary_fill_holes():
     assert n_filled > 1000                           # holes were there to fill
 
 
+def test_per_slice_fill_of_the_body_is_scipys_in_plane_fill():
+    """segment_body fills each slice's holes by labelling the background once: the same masks as
+    ``binary_fill_holes`` with the in-plane structure, on stacks of noisy rings (holes to fill), with
+    full and empty slices, and masks touching the first and last slices (which are no border)."""
+    from scipy import ndimage
+
+    from bonecap.segmentation.skin import _INPLANE, _fill_holes_per_slice
+
+    rng = np.random.default_rng(11)
+    n_filled = 0
+    for k in range(12):
+        shape = (int(rng.integers(20, 70)), int(rng.integers(20, 70)), int(rng.integers(1, 9)))
+        yy, xx = np.mgrid[:shape[0], :shape[1]]
+        m = np.zeros(shape, bool)
+        for s in range(shape[2]):
+            r = np.hypot(yy - rng.uniform(0, shape[0]), xx - rng.uniform(0, shape[1]))
+            m[:, :, s] = (r < rng.uniform(8, 25)) & (r > rng.uniform(2, 7))
+        m ^= rng.random(shape) < 0.03
+        m[:, :, 0] |= k % 4 == 0                      # a full slice
+        if k % 3 == 0:
+            m[:, :, -1] = False                        # an empty one
+        ours = _fill_holes_per_slice(m)
+        assert np.array_equal(ours, ndimage.binary_fill_holes(m, structure=_INPLANE))
+        n_filled += int(ours.sum() - m.sum())
+    assert n_filled > 500                             # holes were there to fill
+
+
 def test_section_continuity_on_its_box_equals_the_whole_slice():
     """``bones._continues`` dilates on the two sections' box (speed): the decision must be the
     whole slice's, including sections at the slice's edge, far apart, and one of them empty."""

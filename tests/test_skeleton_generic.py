@@ -440,3 +440,41 @@ def test_description_is_readable_and_cited(tmp_path):
         assert "Wu" in desc["bones"][b]["frame"], b
     with pytest.raises(InputError):
         load_generic_description(tmp_path / "nope.yaml")
+
+
+def test_the_built_template_is_cached_keyed_and_rebuilt_when_unreadable(tmp_path, monkeypatch):
+    """load_template keeps the embedded skeleton it built in the cache folder; a later call returns
+    the same bones from it, another build option has its own entry, a torn entry is rebuilt, and
+    BONECAP_CACHE_DIR=off writes nothing."""
+    from bonecap.skeleton.template import load_template, template_cache_dir
+
+    monkeypatch.setenv("BONECAP_CACHE_DIR", str(tmp_path / "c"))
+    assert template_cache_dir() == tmp_path / "c"
+    first = load_template("default", bones=["femur_r"])
+    entries = sorted((tmp_path / "c").glob("generic_*.pickle"))
+    assert len(entries) == 1 and "cached_in" not in first.metadata
+    again = load_template("default", bones=["femur_r"])
+    assert again.metadata["cached_in"] == str(entries[0])
+    assert list(again.bones) == list(first.bones)
+    for n, b in first.bones.items():
+        np.testing.assert_array_equal(again.bones[n].bone_to_world, b.bone_to_world)
+        if b.mesh is not None:
+            np.testing.assert_array_equal(again.bones[n].mesh.vertices, b.mesh.vertices)
+            np.testing.assert_array_equal(again.bones[n].mesh.faces, b.mesh.faces)
+    # another stature is another skeleton: its own entry, not the first one's
+    tall = load_template("default", bones=["femur_r"], stature_mm=1850.0)
+    assert "cached_in" not in tall.metadata
+    assert len(list((tmp_path / "c").glob("generic_*.pickle"))) == 2
+    assert np.ptp(tall.bones["femur_r"].mesh.vertices, axis=0).max() > np.ptp(first.bones["femur_r"].mesh.vertices, axis=0).max()
+    # a torn entry (a run killed while writing it elsewhere, a disk error) is built afresh and replaced
+    entries[0].write_bytes(b"not a pickle")
+    rebuilt = load_template("default", bones=["femur_r"])
+    assert "cached_in" not in rebuilt.metadata
+    np.testing.assert_array_equal(rebuilt.bones["femur_r"].mesh.vertices, first.bones["femur_r"].mesh.vertices)
+    assert load_template("default", bones=["femur_r"]).metadata["cached_in"] == str(entries[0])
+    assert not list((tmp_path / "c").glob("*.part"))
+    # turned off: nothing written
+    monkeypatch.setenv("BONECAP_CACHE_DIR", "off")
+    assert template_cache_dir() is None
+    load_template("default", bones=["femur_r"])
+    assert len(list((tmp_path / "c").glob("*"))) == 2

@@ -395,8 +395,13 @@ def run_beside(fn):
     recv, send = ctx.Pipe(duplex=False)
 
     def child():
+        from threadpoolctl import threadpool_limits
+
         try:
-            send.send(("ok", fn()))
+            # one BLAS thread: the parent goes on beside it (see bonecap.parallel)
+            with threadpool_limits(limits=1):
+                result = fn()
+            send.send(("ok", result))
         except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
             try:
                 send.send(("error", exc))

@@ -223,6 +223,23 @@ def _components(tissue: np.ndarray, pixel_area: float, min_area_mm2: float) -> n
         keep = area >= min_area_mm2
         keep[0] = False
         tissue = keep[lab]
-    # The in-plane structure makes binary_fill_holes work slice by slice: the
-    # first and last slices are not "border" because nothing connects along k.
-    return ndimage.binary_fill_holes(tissue, structure=_INPLANE)
+    return _fill_holes_per_slice(tissue)
+
+
+def _fill_holes_per_slice(mask: np.ndarray) -> np.ndarray:
+    """``binary_fill_holes(mask, structure=_INPLANE)``: each slice's holes filled, in one labelling.
+
+    With the in-plane structure scipy's fill propagates the outside from the
+    slices' edges only (nothing connects along ``k``, so the first and last
+    slices are no border); it repeats a dilation until nothing changes, ~0.3 s
+    per whole-body station. The same set is the background's in-plane
+    components (8-connected, the structure's) that touch a slice's edge: one
+    ``label`` pass.
+    """
+    bg, n = ndimage.label(~mask, structure=_INPLANE)
+    if n == 0:
+        return mask.copy()
+    outside = np.zeros(n + 1, dtype=bool)
+    outside[np.concatenate([bg[0].ravel(), bg[-1].ravel(), bg[:, 0].ravel(), bg[:, -1].ravel()])] = True
+    outside[0] = False                        # label 0 is the mask itself
+    return ~outside[bg]

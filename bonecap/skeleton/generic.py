@@ -1811,8 +1811,12 @@ _JOBS: list = []
 
 
 def _mesh_job(i):
+    from threadpoolctl import threadpool_limits
+
     d = _JOBS[i]
-    _mesh_draft(d)
+    # one BLAS thread per worker: the workers fill the cores already (see bonecap.parallel)
+    with threadpool_limits(limits=1):
+        _mesh_draft(d)
     return i, (d.V, d.F, d.Vi, d.Fi, d.landmarks)
 
 

@@ -52,6 +52,7 @@ from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from bonecap.model import Bone, Mesh, Skeleton
+from bonecap.parallel import fork_map
 from bonecap.skeleton.isb import refresh_isb_frames
 from bonecap.skeleton.kinematics import joint_groups
 
@@ -786,31 +787,46 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     results: dict[str, dict[str, Any]] = {}
     rejected: dict[str, str] = {}
     rigid_of: dict[str, np.ndarray] = {}
-    for i, (name, bone) in enumerate(template.bones.items()):
-        if name not in targets or bone.mesh is None:
-            continue
-        # the nearest ancestor with a rigid result carries the template's relative pose (a child of a
-        # rotated parent starts rotated with it: limbs posed otherwise than the template converge)
-        a = bone.parent
-        while a is not None and a not in rigid_of:
-            a = template.bones[a].parent
-        # a template already placed bone by bone (build-subject poses its limbs
-        # toward the MRI's) starts every bone where it is: an ancestor's ICP
-        # error must not tilt its children
-        start = init if start_from == "placed" or a is None else rigid_of[a]
+    index = {name: i for i, name in enumerate(template.bones)}
+
+    def warp_bone(name: str, start: np.ndarray, prior: float) -> dict[str, Any]:
+        bone = template.bones[name]
         src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
         check = src_world if bone.inner_mesh is None else np.concatenate(
             [src_world, _apply(bone.bone_to_world, bone.inner_mesh.vertices)])
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
         # checks them all
         check = check[::2]
-        r = _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name]), start, n_features,
-                      kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * i,
-                      rotation_prior if (a is not None or start_from == "placed") else 0.0, check)
+        return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name]), start, n_features,
+                         kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
+                         check)
+
+    if start_from == "placed":
+        # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
+        # starts every bone where it is -- an ancestor's ICP error must not tilt its children -- so
+        # the bones are independent: warped in worker processes, the largest first so that the
+        # workers finish together (each bone's sampling seed is its own: the same result in any order)
+        todo = sorted(own, key=lambda n: -len(template.bones[n].mesh.vertices))
+        done = dict(zip(todo, fork_map(lambda n: warp_bone(n, init, rotation_prior), todo)))
+    for name, bone in template.bones.items():
+        if name not in targets or bone.mesh is None:
+            continue
+        if start_from == "placed":
+            start, r = init, done[name]
+        else:
+            # the nearest ancestor with a rigid result carries the template's relative pose (a child
+            # of a rotated parent starts rotated with it: limbs posed otherwise than the template
+            # converge)
+            a = bone.parent
+            while a is not None and a not in rigid_of:
+                a = template.bones[a].parent
+            start = init if a is None else rigid_of[a]
+            r = warp_bone(name, start, rotation_prior if a is not None else 0.0)
         # a target that only fits the bone turned over or stretched is not this
         # bone (two bones merged, a neighbour taken for it): carry the bone from
         # its neighbours instead of warping it onto the wrong shape
-        why = _implausible(start, r, max_turn_deg, max_affine_residual_mm, src_world.mean(axis=0), max_shift_mm)
+        centre = _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0)
+        why = _implausible(start, r, max_turn_deg, max_affine_residual_mm, centre, max_shift_mm)
         if why:
             rejected[name] = why
             continue
