@@ -139,13 +139,21 @@ class _SphereModel:
         self.radius = float(radius)
         self.half = float(thickness) / 2
         self.thickness = float(thickness)
+        # what does not depend on the centre, once: the sub-samples' in-plane coordinates and the
+        # slices' extents (the least squares evaluate the model ~100 times per capsule)
+        sub = self.xy[:, None, :] + self.offsets[None, :, :]
+        self._x, self._y = np.ascontiguousarray(sub[..., 0]), np.ascontiguousarray(sub[..., 1])
+        self._top, self._bot = (self.z + self.half)[:, None], (self.z - self.half)[:, None]
 
     def fraction(self, c: np.ndarray) -> np.ndarray:
-        d = self.xy[:, None, :] + self.offsets[None, :, :] - c[:2]
-        h = np.sqrt(np.maximum(self.radius ** 2 - np.einsum("nsk,nsk->ns", d, d), 0.0))
-        top = np.minimum((self.z + self.half)[:, None], c[2] + h)
-        bot = np.maximum((self.z - self.half)[:, None], c[2] - h)
-        return np.maximum(top - bot, 0.0).mean(axis=1) / self.thickness
+        dx = self._x - c[0]
+        dy = self._y - c[1]
+        rho2 = dx * dx
+        rho2 += dy * dy
+        h = np.sqrt(np.maximum(self.radius ** 2 - rho2, 0.0))
+        top = np.minimum(self._top, c[2] + h)
+        top -= np.maximum(self._bot, c[2] - h)
+        return np.maximum(top, 0.0).mean(axis=1) / self.thickness
 
 
 def _fit_sphere(values: np.ndarray, model: _SphereModel, c0: np.ndarray, pitch: float,
