@@ -17,6 +17,7 @@ import numpy as np
 
 from bonecap.io.atomic import atomic_path
 from bonecap.model import Bone, Skeleton
+from bonecap.parallel import fork_start
 
 __all__ = ["contour_mosaic", "write_build_qc"]
 
@@ -96,16 +97,23 @@ def write_build_qc(qc_dir: Path, subject, data: dict[str, Any], report: dict[str
 
     qc_dir = Path(qc_dir)
     qc_dir.mkdir(parents=True, exist_ok=True)
-    out = []
+    mosaics = []
     for n, (v, (lab, _aff)) in enumerate(zip(data["vols"], data["pieces"])):
         name = v.metadata.get("series_description") or v.metadata.get("name") or f"station_{n + 1}"
         safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in str(name))
         sp = v.spacing
-        out.append(contour_mosaic(qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab,
-                                  data.get("bodies", [None] * len(data["vols"]))[n] if data.get("bodies") else None,
-                                  title=f"{name}: bone contours (colours) and skin (cyan)",
-                                  pixel_aspect=float(sp[0] / sp[1])))
-    out += render_skeleton_views(_in_model_frame(subject.skeleton), qc_dir, prefix="personal_skeleton")
+        body = data.get("bodies", [None] * len(data["vols"]))[n] if data.get("bodies") else None
+        mosaics.append((qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab, body,
+                        f"{name}: bone contours (colours) and skin (cyan)", float(sp[0] / sp[1])))
+    # the stations' mosaics (matplotlib, ~1 s each) in worker processes while the skeleton's views are
+    # rendered here (VTK's off-screen window stays in this process)
+    drawing = fork_start(lambda m: contour_mosaic(m[0], m[1], m[2], m[3], title=m[4], pixel_aspect=m[5]), mosaics)
+    try:
+        views = render_skeleton_views(_in_model_frame(subject.skeleton), qc_dir, prefix="personal_skeleton")
+    except BaseException:
+        drawing.close()
+        raise
+    out = drawing.result() + views
     warp = report.get("warp") or {}
     per_bone = warp.get("bones", warp) if isinstance(warp, dict) else {}
     rows = [(b, r) for b, r in per_bone.items() if isinstance(r, dict) and r.get("residual_mean_mm") is not None]
