@@ -40,7 +40,7 @@ project follows (the cortical-edge rule for long bones).
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, special
 from skimage.draw import polygon2mask
 
 from bonecap.segmentation.density import fill_holes
@@ -387,7 +387,7 @@ def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarr
 def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, muscle: float, *,
                      body_mask: np.ndarray | None = None, n_rays: int = 96, max_radius_mm: float = 45.0,
                      max_cortex_mm: float = 8.0, dip_fraction: float = 0.06, profile_sigma_px: float = 0.5,
-                     smooth_rays: int = 5) -> np.ndarray:
+                     smooth_rays: int = 5, cortex_level: float = 0.0) -> np.ndarray:
     """The bone around a marrow region by its cortical edge, filled.
 
     Rays are cast from the marrow's centre (its pixel deepest inside it, so
@@ -396,10 +396,17 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     at ``r_exit``; within ``max_cortex_mm`` beyond it:
 
     - if the profile dips below ``(1 - dip_fraction)`` x muscle (a visible
-      cortex), the contour is where it rises from that minimum back above
-      half-way between the minimum and the muscle level -- the turn from
-      cortical-low to muscle-mid, at the 50 % partial-volume point of the
-      periosteal edge;
+      cortex), the contour is where it rises from that minimum back towards
+      the muscle level -- the turn from cortical-low to muscle-mid. For a
+      cortex several pixels thick that is half-way between the minimum and
+      the muscle level (the 50 % partial-volume point of the periosteal edge);
+      a thinner cortex is blurred into a shallower dip whose half-way rise
+      lies outside the bone, so the level moves towards the minimum with the
+      dip's depth ``D = (muscle - min) / (muscle - cortex_level)``: for a
+      layer of thickness ``t`` under a Gaussian blur ``s``, ``D = 2 Phi(t / 2s)
+      - 1`` and the outer edge lies ``(Phi(t / s) - 1/2) / D`` of the way from
+      the muscle level down to the minimum (1/2 for a thick cortex, 1 for a
+      vanishing one; ``s`` cancels out);
     - otherwise (a cortex thinner than a pixel), the contour is where the
       profile falls below half-way between the marrow level (median of the
       marrow) and the muscle level.
@@ -427,6 +434,11 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
         cortical dip as a fraction of the muscle level; the Gaussian (pixels)
         that takes the noise off the profiles (a median would erase a thin
         cortex); circular median window over the rays (odd, 1 = none).
+    cortex_level : float
+        The signal of cortical bone itself, for the dip's depth. Default 0:
+        cortical bone's T2* (< 1 ms) leaves it a signal void in spin-echo and
+        gradient-echo images alike (the real knee's posterior femoral cortex:
+        7 % of the muscle level, its noise floor).
 
     Returns
     -------
@@ -499,19 +511,28 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     kmin = np.argmin(np.where(exc, prof, np.inf), axis=1)[:, None]
     pmin = np.take_along_axis(prof, kmin, axis=1)
     dip = (f[:, 0] < S) & (pmin[:, 0] < (1.0 - dip_fraction) * m)
-    # visible cortex: first sample after the minimum above half-way (minimum -> muscle)
-    rise = (idx > kmin) & (idx <= g) & (prof > 0.5 * (pmin + m))
+    # Visible cortex: the periosteal edge on the dip's rise back to muscle. A cortex several
+    # pixels thick reaches the cortical level and its edge is the half-way rise. A thinner one is
+    # blurred (pixel, point spread) into a dip that never gets there, and the half-way rise of
+    # that dip lies outside the bone (0.3-0.7 mm at 1.8 mm pixels for a 1-2.5 mm cortex: thin
+    # bones came out 10-20 % too large). For a layer of thickness t under a Gaussian blur s the
+    # dip's depth D = (m - min) / (m - cortex) = 2 Phi(t / 2s) - 1 gives t / s, and the profile
+    # at the outer edge lies rho = (Phi(t / s) - 1/2) / D of the way from the muscle level down
+    # to the minimum: 1/2 for a thick cortex, -> 1 (the minimum) for a thin one, whatever s.
+    depth = np.clip((m - pmin[:, 0]) / max(m - float(cortex_level), 1e-9), 1e-6, 1.0 - 1e-9)
+    half_t = special.ndtri(0.5 * (1.0 + depth))                      # t / 2s
+    rho = (special.ndtr(2.0 * half_t) - 0.5) / depth
+    level = (m - rho * (m - pmin[:, 0]))[:, None]
+    rise = (idx > kmin) & (idx <= g) & (prof > level)
     k_rise = np.where(rise.any(axis=1), np.argmax(rise, axis=1), g[:, 0])
+    # (sub-sample: linear between the sample found and the one before it)
+    p1 = np.take_along_axis(prof, k_rise[:, None], axis=1)[:, 0]
+    p0 = np.take_along_axis(prof, np.maximum(k_rise - 1, 0)[:, None], axis=1)[:, 0]
+    frac = np.clip((level[:, 0] - p0) / np.where(p1 > p0, p1 - p0, 1.0), 0.0, 1.0)
+    r_dip = np.maximum(r[k_rise] - step * (1.0 - frac), r[kmin[:, 0]])
     # no visible cortex: first sample in the window below half-way (marrow -> muscle)
     fall = win & (prof < 0.5 * (marrow_level + m))
     k_fall = np.where(fall.any(axis=1), np.argmax(fall, axis=1), e[:, 0])
-    # A cortex thinner than a pixel only dents the blurred step from marrow to muscle, with
-    # its minimum at the periosteal edge; a thick one reaches the cortical level and the edge
-    # is its half-way rise. Between the two, the edge moves from the minimum to the half-way
-    # rise with the depth of the dip (full at half the muscle level).
-    w = np.clip((m - pmin[:, 0]) / (0.5 * m), 0.0, 1.0)
-    # (sub-sample: the crossing lies between the sample found and the one before it)
-    r_dip = r[kmin[:, 0]] + w * (r[k_rise] - step * 0.5 - r[kmin[:, 0]])
     radius = np.where(dip, r_dip, r[k_fall] - step * 0.5)
     if smooth_rays > 1:
         radius = ndimage.median_filter(radius, size=int(smooth_rays), mode="wrap")
