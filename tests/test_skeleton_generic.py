@@ -473,6 +473,10 @@ def test_the_built_template_is_cached_keyed_and_rebuilt_when_unreadable(tmp_path
     np.testing.assert_array_equal(rebuilt.bones["femur_r"].mesh.vertices, first.bones["femur_r"].mesh.vertices)
     assert load_template("default", bones=["femur_r"]).metadata["cached_in"] == str(entries[0])
     assert not list((tmp_path / "c").glob("*.part"))
+    # a cache folder that cannot be made (a file stands there): built, returned, nothing cached
+    (tmp_path / "file").write_text("x")
+    monkeypatch.setenv("BONECAP_CACHE_DIR", str(tmp_path / "file" / "c"))
+    assert "femur_r" in load_template("default", bones=["femur_r"]).bones
     # turned off: nothing written
     monkeypatch.setenv("BONECAP_CACHE_DIR", "off")
     assert template_cache_dir() is None

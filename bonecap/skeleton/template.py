@@ -75,15 +75,18 @@ def load_template(generic: str | os.PathLike = "default", *, cache: bool = True,
         except Exception:        # absent, unreadable or from another build: build it (again)
             pass
         skeleton = build_generic_skeleton(**kwargs)
+        tmp = None
         try:
             folder.mkdir(parents=True, exist_ok=True)
             # written whole then renamed: a run killed half-way, or two runs at once, leave no torn entry
             with tempfile.NamedTemporaryFile(dir=folder, suffix=".part", delete=False) as fh:
+                tmp = fh.name
                 pickle.dump(skeleton, fh, protocol=pickle.HIGHEST_PROTOCOL)
-            os.replace(fh.name, path)
-        except OSError:          # a read-only home: no cache, the build is still good
-            with contextlib.suppress(OSError, UnboundLocalError):
-                os.unlink(fh.name)
+            os.replace(tmp, path)
+        except Exception:        # a read-only home, a full disk: no cache, the build is still good
+            if tmp is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
         return skeleton
     path = Path(generic)
     if path.suffix.lower() != ".osim":
