@@ -25,7 +25,7 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["fork_map", "fork_start", "Pending", "default_workers"]
+__all__ = ["fork_map", "fork_start", "Pending", "default_workers", "one_blas_thread"]
 
 # the jobs whose pools are alive, by id: a worker forked for job k looks its function and items up here
 # (inherited with the fork, never pickled); several can be running at once (fork_start)
@@ -38,14 +38,23 @@ def default_workers() -> int:
     return int(os.environ.get("BONECAP_WORKERS", "0")) or min(os.cpu_count() or 1, 4)
 
 
+def one_blas_thread():
+    """Context manager: BLAS on one thread, for work in a worker process.
+
+    The workers already fill the cores, and OpenBLAS's threads spin while they
+    wait: two workers with two threads each ran the warp's RBF and ICP solves
+    1.4x slower on two cores (the same results to 1e-6 mm: only the summation
+    order differs). Every worker this package forks runs under it (here, the
+    generic skeleton's meshing pool, the phantom's trials child).
+    """
+    return threadpool_limits(limits=1)
+
+
 def _run(job_i: tuple[int, int]):
     job, i = job_i
     fn, items = _JOBS[job]
     try:
-        # one BLAS thread per worker: the workers already fill the cores, and OpenBLAS's threads spin
-        # while they wait -- two workers with two threads each ran the warp's RBF and ICP solves 1.4x
-        # slower on two cores (the same results to 1e-6 mm: only the summation order differs)
-        with threadpool_limits(limits=1):
+        with one_blas_thread():
             return True, fn(items[i])
     except Exception as exc:  # travels back and is raised in the parent
         try:

@@ -103,11 +103,12 @@ def write_build_qc(qc_dir: Path, subject, data: dict[str, Any], report: dict[str
         safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in str(name))
         sp = v.spacing
         body = data.get("bodies", [None] * len(data["vols"]))[n] if data.get("bodies") else None
-        mosaics.append((qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab, body,
-                        f"{name}: bone contours (colours) and skin (cyan)", float(sp[0] / sp[1])))
+        mosaics.append(((qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab, body),
+                        {"title": f"{name}: bone contours (colours) and skin (cyan)",
+                         "pixel_aspect": float(sp[0] / sp[1])}))
     # the stations' mosaics (matplotlib, ~1 s each) in worker processes while the skeleton's views are
     # rendered here (VTK's off-screen window stays in this process)
-    drawing = fork_start(lambda m: contour_mosaic(m[0], m[1], m[2], m[3], title=m[4], pixel_aspect=m[5]), mosaics)
+    drawing = fork_start(lambda m: contour_mosaic(*m[0], **m[1]), mosaics)
     try:
         views = render_skeleton_views(_in_model_frame(subject.skeleton), qc_dir, prefix="personal_skeleton")
     except BaseException:

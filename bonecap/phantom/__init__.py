@@ -395,11 +395,10 @@ def run_beside(fn):
     recv, send = ctx.Pipe(duplex=False)
 
     def child():
-        from threadpoolctl import threadpool_limits
+        from bonecap.parallel import one_blas_thread
 
         try:
-            # one BLAS thread: the parent goes on beside it (see bonecap.parallel)
-            with threadpool_limits(limits=1):
+            with one_blas_thread():             # the parent goes on beside it
                 result = fn()
             send.send(("ok", result))
         except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it

@@ -1811,11 +1811,10 @@ _JOBS: list = []
 
 
 def _mesh_job(i):
-    from threadpoolctl import threadpool_limits
+    from ..parallel import one_blas_thread
 
     d = _JOBS[i]
-    # one BLAS thread per worker: the workers fill the cores already (see bonecap.parallel)
-    with threadpool_limits(limits=1):
+    with one_blas_thread():
         _mesh_draft(d)
     return i, (d.V, d.F, d.Vi, d.Fi, d.landmarks)
 
