@@ -340,6 +340,43 @@ def test_the_continuity_walk_trims_ends_but_does_not_take_half_a_bone():
     np.testing.assert_array_equal(out, lab)
 
 
+def test_a_canal_too_narrow_to_show_bright_is_found_inside_its_cortex():
+    """A fibula-sized bone (4-4.5 mm radius, 1.8-2 mm of cortex) at 1.8 mm pixels: partial volume
+    leaves its canal at most ~1.2-1.4 x muscle, so bright-marrow candidates alone find nothing (seed 2's
+    right fibula lost 170 mm of shaft so); inside its closed dark ring it is found, and the section
+    comes out within 0.5 mm of its radius. A dark tendon (solid) and a bone whose ring is open on
+    one side give no enclosed candidate."""
+    rng = np.random.default_rng(5)
+    for outer, thick in [(4.0, 1.8), (4.5, 2.0)]:
+        img, _ = _ring_slice(outer, thick, 1.8, rng)
+        body = np.zeros(img.shape, bool)
+        body[10:-10, 10:-10] = True
+        assert not cortical.find_marrow(img, (80, 85), 1.8, body, enclosed_max_mm2=0).any()
+        assert cortical.find_marrow(img, (80, 85), 1.8, body).any()
+        bone = cortical.cortical_edge_slice(img, (80, 85), 1.8, body)
+        assert abs(np.sqrt(bone.sum() / np.pi) * 1.8 - outer) < 0.5
+        # the same ring cut open on one side (a gap of muscle through the cortex): no enclosed hole
+        g = (np.arange(160) + 0.5) * 1.8
+        ii, jj = np.meshgrid(g - 80.37 * 1.8, g - 80.37 * 1.8, indexing="ij")
+        opened = img.copy()
+        opened[(np.abs(ii) < 1.8) & (jj > 0) & (jj < outer + 3)] = 1770.0
+        assert not cortical.enclosed_marrow(opened, body, 1770.0, 1.8).any()
+    # a tendon: dark and solid, nothing enclosed
+    img = np.full((80, 80), 1770.0)
+    ii, jj = np.mgrid[:80, :80]
+    img[np.hypot(ii - 40, jj - 40) < 4] = 119.0
+    assert not cortical.enclosed_marrow(img, np.ones(img.shape, bool), 1770.0, 1.8).any()
+    # a canal in it (9 px); the body in air: the air is dark but outside the body, so the body itself
+    # is no hole; a hole larger than max_area_mm2 is no canal
+    img[np.hypot(ii - 40, jj - 40) < 2] = 1770.0
+    body = np.hypot(ii - 40, jj - 40) < 30
+    img[~body] = 0.0
+    assert cortical.enclosed_marrow(img, body, 1770.0, 1.8).sum() == 9
+    assert not cortical.enclosed_marrow(img, body, 1770.0, 1.8, max_area_mm2=25.0).any()
+    with pytest.raises(ValueError, match="shape"):
+        cortical.enclosed_marrow(img, np.ones((3, 3), bool), 1770.0, 1.8)
+
+
 def test_rim_darkness_tells_marrow_from_a_speck_of_fat():
     """Marrow is rimmed by its dark cortex, a speck of fat between muscles by muscle."""
     from scipy import ndimage

@@ -190,7 +190,7 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
         return out
     o0 = opts[next(iter(bones))]          # the slice's candidates follow its (first) long bone's options
     # fat reaches the skin and is dropped; marrow joined to it through a gap in the cortex is cut loose
-    cand = body & (med > o0.get("marrow_over_muscle", 1.2) * m_slice)
+    cand = _marrow_candidates(med, body, pixel_mm, m_slice, o0)
     lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
     if n == 0:
         return out
@@ -298,7 +298,7 @@ def _split_shared_regions(lab: np.ndarray, n: int, seeds: Mapping[str, np.ndarra
     return lab, n
 
 
-_MARROW_KEYS = {"marrow_over_muscle", "min_marrow_mm2", "unrimmed_cost_mm"}
+_MARROW_KEYS = {"marrow_over_muscle", "min_marrow_mm2", "unrimmed_cost_mm", "enclosed_max_mm2"}
 _CONTOUR_KEYS = {"n_rays", "max_radius_mm", "max_cortex_mm", "dip_fraction", "profile_sigma_px", "smooth_rays"}
 _DENSITY_KEYS = {"fraction", "min_neighbours", "exclude_skin_band_mm"}
 
@@ -369,13 +369,22 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
                 labels[:, :, k][both[:, :, z]] = owner
 
 
+def _marrow_candidates(med: np.ndarray, body: np.ndarray, pixel_mm: float, m_slice: float, opts: Mapping
+                       ) -> np.ndarray:
+    """A slice's marrow pixels before they are split into regions: brighter than ``marrow_over_muscle`` x
+    muscle, or inside a closed ring of cortex however dim (:func:`~bonecap.segmentation.cortical.enclosed_marrow`)."""
+    cand = body & (med > opts.get("marrow_over_muscle", 1.2) * m_slice)
+    return cand | cortical.enclosed_marrow(med, body, m_slice, pixel_mm,
+                                           max_area_mm2=opts.get("enclosed_max_mm2", cortical.ENCLOSED_MAX_MM2))
+
+
 def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float, opts: Mapping
                     ) -> tuple[np.ndarray, np.ndarray, float]:
     """A slice's marrow candidates as :func:`_cortical_slice` finds them: (labels, kept ids, muscle level)."""
     m_slice = cortical.muscle_level(med, inner)
     if not np.isfinite(m_slice) or m_slice <= 0:
         return np.zeros(med.shape, np.int32), np.zeros(0, int), m_slice
-    cand = body & (med > opts.get("marrow_over_muscle", 1.2) * m_slice)
+    cand = _marrow_candidates(med, body, pixel_mm, m_slice, opts)
     lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
     area = np.bincount(lab.ravel(), minlength=n + 1)[1:] * pixel_mm ** 2
     keep = np.flatnonzero(area >= opts.get("min_marrow_mm2", 6.0)) + 1
