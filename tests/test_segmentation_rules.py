@@ -470,6 +470,43 @@ def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
             assert np.linalg.norm(np.cross(line[-1] - p0, u)) < 1e-6        # on the joint-to-joint line
 
 
+def test_long_bone_seed_lines_run_through_the_shaft():
+    """A femur's joint centres (head, knee) lie off its shaft by the neck's offset: below the
+    trochanters the head-to-knee line leaves the bone (a phantom's marrow 28-42 mm from it, 25 mm
+    searched). The seed line through the template's section centres (``shaft_line``) stays inside
+    the bone; on a tube bent away from its end points it follows the tube's axis."""
+    import trimesh
+
+    from bonecap.build_mri import bone_seeds, shaft_line
+    from bonecap.skeleton.template import load_template
+
+    # a tube along z from 0 to 400 mm whose axis is 30 mm off the line between its end points in the
+    # middle (a smooth bow), radius 12 mm
+    z = np.linspace(0, 400, 201)
+    off = 30.0 * np.sin(np.pi * z / 400)
+    ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    V = np.array([[o + 12 * np.cos(a), 12 * np.sin(a), zz] for zz, o in zip(z, off) for a in ang])
+    line = np.array(shaft_line(V, np.array([0.0, 0, 0]), np.array([0.0, 0, 400])))
+    assert len(line) == 11
+    inner = line[1:-1]
+    assert np.abs(inner[:, 0] - 30.0 * np.sin(np.pi * inner[:, 2] / 400)).max() < 1.0
+    assert np.abs(inner[:, 1]).max() < 1e-6
+    assert len(shaft_line(V[:5], np.zeros(3), np.array([0.0, 0, 400]))) == 2   # too few vertices: the ends
+
+    sk = load_template("default")
+    seeds = bone_seeds(sk, np.eye(4))
+    for bone in ("femur_r", "femur_l", "radius_r", "fibula_l"):
+        b = sk.bones[bone]
+        tm = trimesh.Trimesh(b.mesh.vertices, b.mesh.faces, process=False)
+        inside = tm.contains((seeds[bone][1:-1] - b.bone_to_world[:3, 3]) @ b.bone_to_world[:3, :3])
+        assert inside.all(), (bone, inside)
+    b = sk.bones["femur_r"]
+    p0, p1 = b.landmark_in_world("hip"), b.landmark_in_world("knee")
+    tm = trimesh.Trimesh(b.mesh.vertices, b.mesh.faces, process=False)
+    on_joint_line = [p0 + f * (p1 - p0) for f in (0.1, 0.2)]
+    assert not tm.contains((np.array(on_joint_line) - b.bone_to_world[:3, 3]) @ b.bone_to_world[:3, :3]).any()
+
+
 def test_fill_holes_is_scipys_binary_fill_holes():
     """``density.fill_holes`` labels the background instead of scipy's repeated dilation: the same
     masks on rings with noise, a mask touching the slice edge, nested rings and an empty one."""
