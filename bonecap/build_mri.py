@@ -333,6 +333,12 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     beyond the wrist's centre: the radius's line is left as it is (ended
     16 mm short, one phantom's radius lost its styloid's end and came out
     27.6 mm off in the trials, 11.0 before).
+
+    A bone that reaches farther than ``margin_mm`` past its distal joint
+    centre, where no other long bone's line begins -- the fibula, whose
+    lateral malleolus ends 40 mm past the distal tibiofibular joint -- has
+    its line carried on along it to half the margin short of its end (its
+    last 20 mm were not searched: a phantom's malleoli were lost).
     """
     from bonecap.skeleton.kinematics import joint_groups
 
@@ -345,7 +351,7 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         pts = [b.landmark_in_world(j) for j in b.joint_centres]
         if b.mesh is not None and not name.startswith(_LONG):
             pts.append(b.mesh.transformed(b.bone_to_world).vertices.mean(axis=0))
-        if name.startswith(_LONG) and len(pts) > 2:
+        if name.startswith(_LONG) and len(pts) >= 2:
             # the shaft's two ends only: proximal = first, distal = farthest from it
             d = [np.linalg.norm(p - pts[0]) for p in pts]
             far = int(np.argmax(d))
@@ -360,6 +366,18 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                             for o in meshes)
                 if reach > 0.0:
                     pts[1] = pts[1] + float(min(margin_mm + reach, 0.25 * length)) * back
+            elif b.mesh is not None and not any(
+                    n in bones and n.startswith(_LONG) and list(template.bones[n].joint_centres)[0] == j
+                    for n, j in group_of[(name, list(b.joint_centres)[far])] if n != name):
+                # a bone that goes on far past its distal joint centre, where no other long bone's line
+                # begins (the fibula's lateral malleolus, 40 mm past the distal tibiofibular joint): its line
+                # goes on along it, so that the search reaches half the margin past its end as it does
+                # past the radius's or the humerus's (it stopped 20 mm short: a phantom's malleoli lost)
+                length = float(np.linalg.norm(pts[1] - pts[0]))
+                u = (pts[1] - pts[0]) / max(length, 1e-9)
+                own = float(((b.mesh.transformed(b.bone_to_world).vertices - pts[1]) @ u).max())
+                if own > margin_mm:
+                    pts[1] = pts[1] + (own - 0.5 * margin_mm) * u
             if b.mesh is not None:
                 pts = shaft_line(b.mesh.transformed(b.bone_to_world).vertices, pts[0], pts[1])
         if not pts:

@@ -439,8 +439,10 @@ def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
     (how far its template mesh extends past the ankle's centre back along the tibia) short of the
     ankle's centre: searched to 20 mm beyond that centre, the tibia took the talus's sections (not
     segmented at whole-body resolution) on a phantom. The carpals begin beyond the wrist's centre
-    (reach < 0): the radius's line reaches the wrist, as do lines that end at a joint with a segmented
-    bone (femur-tibia, fibula-tibia, ulna-radius)."""
+    (reach < 0): the radius's line reaches the wrist, as do lines that end where another long bone's
+    begins (femur-tibia). A bone that goes on past its distal centre by more than the margin, where
+    no other line begins (the fibula's malleolus past the distal tibiofibular joint), is searched
+    to half the margin past its end."""
     from bonecap.build_mri import bone_seeds
     from bonecap.skeleton.template import load_template
 
@@ -454,20 +456,36 @@ def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
 
     talus, carpals = reach("tibia_r", "talus_r", "knee", "ankle"), reach("radius_l", "carpals_l", "elbow", "wrist")
     assert 5.0 < talus < 25.0 and -10.0 < carpals < 5.0
-    for margin in (20.0, 5.0):
+    def own(bone, prox, joint):
+        """How far the bone itself goes on past its distal joint centre."""
+        b = sk.bones[bone]
+        p0, p1 = b.landmark_in_world(prox), b.landmark_in_world(joint)
+        return float(((b.mesh.transformed(b.bone_to_world).vertices - p1) @ (p1 - p0)).max() / np.linalg.norm(p1 - p0))
+
+    # the fibula's lateral malleolus ends ~40 mm past the distal tibiofibular joint, the ulna's styloid ~15 mm
+    # past the distal radio-ulnar joint: past the margin, the line goes on to half the margin short of it
+    malleolus, styloid = own("fibula_l", "proximal_tibiofibular", "distal_tibiofibular"), \
+        own("ulna_r", "elbow", "distal_radioulnar")
+    assert 25.0 < malleolus < 60.0 and 5.0 < styloid < 20.0
+
+    def on(reach, margin):
+        return -(reach - 0.5 * margin) if reach > margin else 0.0
+    for margin in (20.0, 5.0, 60.0):
         seeds = bone_seeds(sk, np.eye(4), margin_mm=margin)
-        for bone, prox, dist, short in (("tibia_r", "knee", "ankle", margin + talus),
+        for bone, prox, dist, short in (("tibia_r", "knee", "ankle", min(margin + talus, 0.25 * 389.3)),
                                         ("radius_l", "elbow", "wrist", 0.0),
                                         ("femur_r", "hip", "knee", 0.0),
-                                        ("fibula_l", "proximal_tibiofibular", "distal_tibiofibular", 0.0),
-                                        ("ulna_r", "elbow", "distal_radioulnar", 0.0)):
+                                        ("fibula_l", "proximal_tibiofibular", "distal_tibiofibular",
+                                         on(malleolus, margin)),
+                                        ("ulna_r", "elbow", "distal_radioulnar", on(styloid, margin))):
             b = sk.bones[bone]
             p0, p1 = b.landmark_in_world(prox), b.landmark_in_world(dist)
             line = seeds[bone]
-            assert np.allclose(line[0], p0)
-            assert np.linalg.norm(line[-1] - p1) == pytest.approx(short, abs=1e-6), (bone, margin)
             u = (p1 - p0) / np.linalg.norm(p1 - p0)
-            assert np.linalg.norm(np.cross(line[-1] - p0, u)) < 1e-6        # on the joint-to-joint line
+            assert np.allclose(line[0], p0)
+            # ``short`` mm short of the distal centre (negative: beyond it), on the joint-to-joint line
+            assert (p1 - line[-1]) @ u == pytest.approx(short, abs=0.5), (bone, margin)
+            assert np.linalg.norm(np.cross(line[-1] - p0, u)) < 1e-6
 
 
 def test_long_bone_seed_lines_run_through_the_shaft():
