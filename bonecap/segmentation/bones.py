@@ -1,7 +1,8 @@
 """Every bone of an axial MRI stack, slice by slice, from seeds (stage 3 of ``build-subject``).
 
-Each bone has a seed polyline in the LPS world (for a long bone the line from
-its proximal to its distal joint centre; for other bones one or a few
+Each bone has a seed polyline in the LPS world (for a long bone a line from
+its proximal to its distal joint centre, through its shaft: build-subject
+takes the template's section centres, :func:`bonecap.build_mri.shaft_line`; for other bones one or a few
 points, e.g. from the template roughly aligned to the skin, or placed by eye
 as in the paper). In each axial slice the bone's seeds are where its polyline
 crosses the slice plane; the bone is segmented there by its rule --
