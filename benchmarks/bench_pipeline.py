@@ -12,7 +12,7 @@ Every step runs as its own ``bonecap`` process, as a user would run it.
 Usage::
 
     python benchmarks/bench_pipeline.py --seeds 1 --work /tmp/bench_pipeline [--phantom /tmp/ph_default]
-        [--marker-capsules]
+        [--marker-capsules] [--functional]
 
 ``--marker-capsules`` follows the paper's protocol: the phantoms image an 8 mm oil capsule under
 every marker (``bonecap phantom --marker-capsules``), which build-subject finds and places the
@@ -90,6 +90,9 @@ def main() -> None:
     ap.add_argument("--phantom", type=Path, help="reuse this phantom folder (for the first seed)")
     ap.add_argument("--marker-capsules", action="store_true",
                     help="the paper's protocol: phantoms made with an oil capsule imaged under every marker")
+    ap.add_argument("--functional", action="store_true",
+                    help="build-subject from MRI with the walking trial as --functional (the femurs' twist "
+                    "from the knee's flexion axis)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     summary = {}
@@ -104,8 +107,9 @@ def main() -> None:
         stations = sorted((ph / "mri").glob("station_*"))
         forearm = sorted((ph / "mri").glob("forearm_*"), key=lambda p: float(p.name.split("_")[1]))
         trials = sorted((ph / "trials").glob("*.c3d"))
+        func = ["--functional", ph / "trials/walk.c3d"] if args.functional else []
         wall, rss = run(["build-subject", *stations, "--static", ph / "trials/static.c3d", "--forearm-poses",
-                         *forearm, "-o", w / "subject"], w / "build.log")
+                         *forearm, *func, "-o", w / "subject"], w / "build.log")
         rep = json.loads((w / "subject/report.json").read_text())
         ev_s = evaluate("subject", w / "subject", truth, w / "ev_subject.log")
         wall_s, _ = run(["build-subject", "--static", ph / "trials/static.c3d", "-o", w / "subject_static"],

@@ -521,8 +521,13 @@ def load_seeds(path: str | os.PathLike, *, with_settings: bool = False):
 def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike = "default",
                    marker_set: str | os.PathLike | None = None, static: str | os.PathLike | None = None,
                    forearm_poses: list[str] | None = None, seeds: str | os.PathLike | None = None,
-                   labels: str | os.PathLike | None = None, subject_name: str | None = None):
+                   labels: str | os.PathLike | None = None, subject_name: str | None = None,
+                   functional: list[str | os.PathLike] | None = None):
     """Build a subject from MRI stations; see the module docstring for the stages.
+
+    ``functional``: movement trials (C3D) with knee flexion, with ``static``: the femurs' twist in the
+    static binding is corrected from the knee's flexion axis
+    (:func:`bonecap.build_subject.knee_flexion_twist`) where no capsule measured the thigh's markers.
 
     Returns
     -------
@@ -556,6 +561,9 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     mset = load_marker_set(marker_set or ("kojima_paper" if str(generic) == "default" else generic))
     check_marker_set(mset, template)
     static_trial = read_c3d(static, subject=subject_name) if static else None
+    if functional and static_trial is None:
+        raise InputError("--functional needs --static (the trials correct the static's binding)", functional[0])
+    functional_trials = [(read_c3d(f, subject=subject_name), str(f)) for f in functional or ()]
     lap("template")
 
     # 1. stations
@@ -698,7 +706,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         side = _stack_side(forearm_poses[0], personal)
         registering = start_forearm_registration(list(forearm_poses), personal, side)
     try:
-        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static)
+        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials)
     except BaseException:
         if registering is not None:
             registering.close()
@@ -870,10 +878,14 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
     return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned}
 
 
-def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> dict[str, Any]:
-    """Markers on the personal skin over their landmarks; capsules where found; the static trial binds."""
+def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, functional=()) -> dict[str, Any]:
+    """Markers on the personal skin over their landmarks; capsules where found; the static trial binds.
+
+    ``functional``: ``(trial, path)`` of movement trials whose knee flexion corrects the femurs' twist
+    (:func:`bonecap.build_subject.knee_flexion_twist`)."""
     from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, bind_static,
-                                       joint_consistent, neutral_twist, pose_to_static, static_markers)
+                                       functional_twists, joint_consistent, neutral_twist, pose_to_static,
+                                       static_markers, turn_femurs)
     from bonecap.markers import place_markers
     from bonecap.subject import MarkerBinding
 
@@ -924,15 +936,34 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path) -> d
         guessed = [t for t in ("tibia_r", "tibia_l") if t in sk.bones and any(
             subject.markers[n].bone in (t, t.replace("tibia", "fibula")) and subject.markers[n].source != "capsule"
             for n in snames)]
-        if guessed:
-            solved = neutral_twist(sk, solved, tuple(guessed))
         report["static_knee_twist_from_mri"] = guessed
-        # the hand's twist is the radius's (the wrist turns no way about its long axis), and the foot's roll
-        # about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
-        solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)
-        poses = joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
+
+        def chain(solved):
+            if guessed:
+                solved = neutral_twist(sk, solved, tuple(guessed))
+            # the hand's twist is the radius's (the wrist turns no way about its long axis), and the foot's
+            # roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
+            solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)
+            return joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
+
+        poses = chain(solved)
         bound = bind_static(sk, snames, bones, lab, poses)
-        moved = {n: float(np.linalg.norm(bound[n].local - subject.markers[n].local)) for n in bound}
+        placed_local = {n: subject.markers[n].local for n in bound}
+        if functional:
+            # the femur's twist from the knee's flexion axis in the movement trials, where no capsule
+            # measured the thigh's markers (a capsule puts them within a millimetre of the truth)
+            guessed_f = [f for f in ("femur_r", "femur_l") if f in sk.bones and any(
+                subject.markers[n].bone in (f, f.replace("femur", "patella"))
+                and subject.markers[n].source != "capsule" for n in snames)]
+            subject.markers.update(bound)
+            twists = functional_twists(subject, functional)
+            report["functional_knee_twist"] = {f: {k: round(v, 2) for k, v in d.items()} for f, d in twists.items()}
+            turn = {f: d["twist_deg"] for f, d in twists.items() if f in guessed_f}
+            if turn:
+                poses = chain(turn_femurs(sk, solved, turn))
+                bound = bind_static(sk, snames, bones, lab, poses)
+            report["functional_femur_turned_deg"] = {f: round(v, 2) for f, v in turn.items()}
+        moved = {n: float(np.linalg.norm(bound[n].local - placed_local[n])) for n in bound}
         subject.markers.update(bound)
         report["static_binding_shift_mm"] = {k: round(v, 2) for k, v in moved.items()}
         report["markers_missing_in_static"] = [n for n in names if n not in bound]

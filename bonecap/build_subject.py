@@ -33,7 +33,8 @@ from bonecap.scaling import (fit_scale_factors, load_scaling_groups, scale_facto
 from bonecap.skeleton.template import load_template, template_marker_set
 from bonecap.subject import MarkerBinding, Subject
 
-__all__ = ["static_markers", "pose_to_static", "bind_static", "build_from_static"]
+__all__ = ["static_markers", "pose_to_static", "bind_static", "knee_flexion_twist", "turn_femurs",
+           "functional_twists", "build_from_static"]
 
 
 def parse_frames(spec: str | None, n_frames: int) -> slice:
@@ -222,6 +223,160 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     return out
 
 
+#: Knee flexion (deg) from which a frame's hip-knee-ankle plane stands for the knee's flexion axis.
+FUNCTIONAL_MIN_FLEXION_DEG = 25.0
+
+
+def _knees(skeleton: Skeleton) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(femur, tibia, hip in femur, knee in femur, ankle in tibia, flexion axis in femur)`` per knee."""
+    from bonecap.skeleton.kinematics import proximal_joint
+
+    out = []
+    for n in skeleton.names:
+        t = skeleton.bones[n]
+        if not n.startswith("tibia") or t.parent is None or not t.parent.startswith("femur"):
+            continue
+        try:
+            knee, knee_f, knee_t = proximal_joint(skeleton, n)
+            _, _, hip_f = proximal_joint(skeleton, t.parent)           # the hip centre in the femur frame
+        except ValueError:
+            continue
+        axis = t.joint_axes.get(knee)
+        others = [c for k, c in t.joint_centres.items() if k != knee]
+        if axis is None or not others:
+            continue
+        ankle_t = max(others, key=lambda c: float(np.linalg.norm(c - knee_t)))
+        rel = np.linalg.solve(skeleton.bones[t.parent].bone_to_world, t.bone_to_world)
+        out.append((t.parent, n, np.asarray(hip_f, float), np.asarray(knee_f, float), np.asarray(ankle_t, float),
+                    rel[:3, :3] @ np.asarray(axis, float)))
+    return out
+
+
+def knee_flexion_twist(skeleton: Skeleton, transforms: np.ndarray, *,
+                       min_flexion_deg: float = FUNCTIONAL_MIN_FLEXION_DEG, min_frames: int = 20
+                       ) -> dict[str, dict[str, float]]:
+    """How far each femur's frame is turned about its long axis, read from a movement trial's knee flexion.
+
+    The static trial fixes a femur's twist poorly: two markers (the thigh's,
+    on a featureless shaft, and the lateral epicondyle's) lie 40-50 mm off
+    its long axis, so 4-5 mm of error in where they were placed turns it by
+    5-14 degrees (a phantom's placed markers, both within 5 mm of the
+    truth: 13.6 degrees). Plug-in Gait has the same weakness and the
+    field's answers are a knee alignment device or a functional
+    calibration: the knee flexes about an axis fixed in the femur, and its
+    direction in a flexing trial corrects the thigh's rotation (Baker et al.
+    1999's DynaKAD; Schwartz & Rozumalski 2005). Here, in every frame whose
+    knee is flexed by at least ``min_flexion_deg``, the normal of the
+    plane through the hip, knee and ankle centres (the joint centres of the
+    solved poses: set by the bones' ends, not by the thigh markers' spin)
+    is the flexion axis; expressed in the solved femur frame, its angle
+    about the femur's long axis (hip to knee) from the subject's anatomical
+    knee axis (the tibia's ``joint_axes`` at the reference pose) is how far
+    that frame is turned. The median over those frames is returned. The
+    frames are flexed ones, where the thigh's soft-tissue artefact is
+    largest (on the phantom the femur's spin error changes by up to 8
+    degrees between extension and 60 degrees of flexion), so the turn is
+    the femur's error in flexion, which the static's does not always share.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The subject (femur and tibia joint centres, the tibia's knee axis).
+    transforms : ndarray (F, B, 4, 4)
+        Solved ``bone_to_lab`` of a trial (any lab frame), NaN where invalid.
+    min_flexion_deg : float
+        Frames flexed less are left out (the plane is ill-defined near full extension).
+    min_frames : int
+        A knee with fewer such frames gets no estimate.
+
+    Returns
+    -------
+    dict
+        Per femur name: ``twist_deg`` (turn the femur frame by this much about
+        its long axis, right-handed from hip to knee, to correct it),
+        ``frames`` and ``spread_deg`` (median absolute deviation of the
+        per-frame values).
+
+    References
+    ----------
+    .. [1] Baker R, Finney L, Orr J (1999). A new approach to determine the hip rotations profile from
+           clinical gait analysis data. Hum Mov Sci 18:655-667.
+    .. [2] Schwartz MH, Rozumalski A (2005). A new method for estimating joint parameters from motion
+           data. J Biomech 38(1):107-116.
+    """
+    T = np.asarray(transforms, float)
+    if T.ndim != 4 or T.shape[1:] != (len(skeleton.names), 4, 4):
+        raise ValueError(f"transforms must be (frames, {len(skeleton.names)}, 4, 4) for this skeleton, got {T.shape}")
+    if not 0 < min_flexion_deg < 180:
+        raise ValueError(f"min_flexion_deg must be in (0, 180), got {min_flexion_deg}")
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    out: dict[str, dict[str, float]] = {}
+    for femur, tibia, hip_f, knee_f, ankle_t, axis_f in _knees(skeleton):
+        Fm, Tb = T[:, idx[femur]], T[:, idx[tibia]]
+        ok = np.isfinite(Fm).all(axis=(1, 2)) & np.isfinite(Tb).all(axis=(1, 2))
+        if not ok.any():
+            continue
+        Fm, Tb = Fm[ok], Tb[ok]
+        hip = Fm[:, :3, :3] @ hip_f + Fm[:, :3, 3]
+        knee = Fm[:, :3, :3] @ knee_f + Fm[:, :3, 3]
+        ankle = Tb[:, :3, :3] @ ankle_t + Tb[:, :3, 3]
+        thigh, shank = knee - hip, ankle - knee
+        cosf = np.einsum("ij,ij->i", thigh, shank) / (np.linalg.norm(thigh, axis=1) * np.linalg.norm(shank, axis=1))
+        flexed = np.degrees(np.arccos(np.clip(cosf, -1.0, 1.0))) >= min_flexion_deg
+        if flexed.sum() < min_frames:
+            continue
+        normal = np.cross(thigh[flexed], shank[flexed])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        n_f = np.einsum("fji,fj->fi", Fm[flexed, :3, :3], normal)     # in the solved femur frame
+        n_f *= np.sign(n_f @ axis_f)[:, None]
+        u = (knee_f - hip_f) / np.linalg.norm(knee_f - hip_f)
+        a = axis_f - (axis_f @ u) * u
+        n_p = n_f - (n_f @ u)[:, None] * u
+        angle = np.degrees(np.arctan2(np.cross(a, n_p) @ u, n_p @ a))
+        med = float(np.median(angle))
+        out[femur] = {"twist_deg": med, "frames": int(flexed.sum()),
+                      "spread_deg": float(np.median(np.abs(angle - med)))}
+    return out
+
+
+def turn_femurs(skeleton: Skeleton, poses: np.ndarray, twists: dict[str, float]) -> np.ndarray:
+    """Femurs of a pose (``bone_to_lab``, B x 4 x 4) turned about their long axes (hip to knee) by degrees."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.array(poses, dtype=float, copy=True)
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    for femur, tibia, hip_f, knee_f, _, _ in _knees(skeleton):
+        if femur not in twists or not np.isfinite(out[idx[femur]]).all():
+            continue
+        u = (knee_f - hip_f) / np.linalg.norm(knee_f - hip_f)
+        P = out[idx[femur]]
+        R = P[:3, :3] @ Rotation.from_rotvec(np.radians(twists[femur]) * u).as_matrix()
+        P[:3, 3] = P[:3, :3] @ hip_f + P[:3, 3] - R @ hip_f            # the hip centre stays
+        P[:3, :3] = R
+    return out
+
+
+def functional_twists(subject: Subject, trials: list[tuple[Trial, str]]) -> dict[str, dict[str, float]]:
+    """:func:`knee_flexion_twist` over movement trials solved as ``animate`` solves them (its least squares).
+
+    ``trials`` are ``(trial, path)``, matched to the subject's bound markers by
+    name and alias; the frames of all trials are pooled. The solve is
+    animate's own (:func:`bonecap.animate.solve_trial`, the same sweeps): the
+    thigh's twist is a slow direction of its block-coordinate descent (seed
+    1's walk: the left femur 11.2 deg off after animate's sweeps, 5.2 after
+    100), so the turn read here is the one animate's poses need.
+    """
+    from bonecap.animate import solve_trial, trial_markers
+
+    pooled = []
+    for trial, path in trials:
+        names, measured, _ = trial_markers(subject, trial, path=path)
+        pooled.append(solve_trial(subject, names, measured, rate=trial.rate).transforms)
+    if not pooled:
+        return {}
+    return knee_flexion_twist(subject.skeleton, np.concatenate(pooled))
+
+
 def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     """The solved static rebuilt as a chain of ball joints, so that every joint centre coincides.
 
@@ -295,6 +450,8 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
         C3D subject prefix to keep.
     iterations : int
         Rounds of pose → per-bone scale (3 settle to < 0.5 %).
+    static_frames : str, optional
+        ``START:STOP`` frames of the static to use.
 
     Returns
     -------
@@ -395,7 +552,7 @@ def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, gene
                       marker_set: str | os.PathLike | None = None, static: str | os.PathLike | None = None,
                       forearm_poses: list[str] | None = None, seeds: str | os.PathLike | None = None,
                       labels: str | os.PathLike | None = None, subject_name: str | None = None,
-                      static_frames: str | None = None) -> dict[str, Any]:
+                      static_frames: str | None = None, functional: list[str] | None = None) -> dict[str, Any]:
     """The ``build-subject`` command: build and write a subject folder.
 
     The folder is assembled in a temporary folder beside ``out_dir`` and
@@ -418,6 +575,12 @@ def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, gene
                              "(the template scaled to a static trial)", out_dir)
         if forearm_poses:
             raise InputError("--forearm-poses needs the MRI stations too", out_dir)
+        if functional:
+            # measured on the phantoms: the scaled template's knee axis and joint centres read the femur's
+            # twist 5-11 deg off, where the template's neutral twist was within 0.5 (femur 2.2 -> 7.3 deg)
+            raise InputError("--functional needs the MRI stations (the subject's own knee axis): with the "
+                             "template alone the knee's axis is not known well enough to correct the femur",
+                             functional[0])
         subject, report = build_from_static(static, generic=generic, marker_set=marker_set,
                                             subject_name=subject_name, static_frames=static_frames)
         qc = None
@@ -426,7 +589,7 @@ def run_build_subject(mri: list[str] | None, out_dir: str | os.PathLike, *, gene
 
         subject, report, qc = build_from_mri(mri or [], generic=generic, marker_set=marker_set, static=static,
                                              forearm_poses=forearm_poses, seeds=seeds, labels=labels,
-                                             subject_name=subject_name)
+                                             subject_name=subject_name, functional=functional)
     report["bones"] = len(subject.skeleton.bones)
     with atomic_path(out_dir, directory=True) as tmp:
         write_subject(subject, tmp, extra={"report_file": "report.json"})

@@ -71,7 +71,8 @@ def _cmd_build_subject(args: argparse.Namespace) -> int:
 
     report = run_build_subject(args.mri, args.out_dir, generic=args.generic, marker_set=args.marker_set,
                                static=args.static, forearm_poses=args.forearm_poses, seeds=args.seeds,
-                               labels=args.labels, subject_name=args.subject, static_frames=args.static_frames)
+                               labels=args.labels, subject_name=args.subject, static_frames=args.static_frames,
+                               functional=args.functional)
     print(report["summary"])
     return 0
 
@@ -175,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--marker-set", metavar="NAME|FILE.yaml",
                    help="marker set (default: Kojima's set for MRI subjects, the template's otherwise)")
     p.add_argument("--static", metavar="STATIC.c3d", help="static trial: pose the skeleton and bind the markers")
+    p.add_argument("--functional", metavar="TRIAL.c3d", nargs="+",
+                   help="movement trials with knee flexion (walking): each femur's twist about its long axis "
+                   "from the knee's flexion axis (the static's thigh and knee markers fix it poorly); needs --static")
     p.add_argument("--static-frames", metavar="START:STOP",
                    help="frames of --static to average (0-based, STOP excluded; default all), e.g. the quiet "
                    "stance at the start of a movement trial when there is no static trial")

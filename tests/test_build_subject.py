@@ -347,3 +347,97 @@ def test_seeds_file_settings(tmp_path):
         with pytest.raises(InputError, match=msg):
             load_seeds(f, with_settings=True)
 
+
+
+def _walking_knees(sk, n=120):
+    """The template's legs flexing: hips -10..30 deg, knees 0..65 deg about the tibia's own knee axis."""
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.skeleton.kinematics import pose_skeleton
+
+    t = np.linspace(0, 2 * np.pi, n)
+    rots = {}
+    for s in "rl":
+        tib = sk.bones[f"tibia_{s}"]
+        rel = np.linalg.solve(sk.bones[f"femur_{s}"].bone_to_world, tib.bone_to_world)[:3, :3]
+        axis = rel @ tib.joint_axes["knee"]                       # the knee axis in the femur frame
+        knee = np.radians(32.5 - 32.5 * np.cos(t + (np.pi if s == "l" else 0.0)))
+        rots[f"tibia_{s}"] = Rotation.from_rotvec(knee[:, None] * axis).as_matrix()
+        hip_axis = np.linalg.inv(sk.bones[f"hip_{s}"].bone_to_world)[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        rots[f"femur_{s}"] = Rotation.from_rotvec(np.radians(10 + 20 * np.sin(t))[:, None] * hip_axis).as_matrix()
+    root = sk.bones[sk.names[0]].bone_to_world
+    return pose_skeleton(sk, np.repeat(root[None], n, axis=0), rots)
+
+
+def test_knee_flexion_gives_back_a_femurs_wrong_twist():
+    """A femur whose frame is turned about its long axis (a thigh marker placed 5 mm off turns it by
+    5-14 deg) sees the knee flex about a turned axis: ``knee_flexion_twist`` reads the turn back from
+    the hip-knee-ankle planes of the flexed frames, ``turn_femurs`` undoes it (hip and knee centres
+    stay), and a trial whose knees hardly flex gives no estimate."""
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_subject import knee_flexion_twist, turn_femurs
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    poses = _walking_knees(sk)
+    idx = {n: i for i, n in enumerate(sk.names)}
+    wrong = poses.copy()
+    for s, err in (("r", 9.0), ("l", -6.0)):
+        f = sk.bones[f"femur_{s}"]
+        u = f.joint_centres["knee"] / np.linalg.norm(f.joint_centres["knee"])    # origin = hip centre
+        wrong[:, idx[f"femur_{s}"], :3, :3] = poses[:, idx[f"femur_{s}"], :3, :3] @ \
+            Rotation.from_rotvec(np.radians(err) * u).as_matrix()
+    est = knee_flexion_twist(sk, wrong)
+    assert set(est) == {"femur_r", "femur_l"}
+    assert est["femur_r"]["twist_deg"] == pytest.approx(-9.0, abs=0.3)
+    assert est["femur_l"]["twist_deg"] == pytest.approx(6.0, abs=0.3)
+    assert est["femur_r"]["frames"] >= 40 and est["femur_r"]["spread_deg"] < 0.5
+    assert knee_flexion_twist(sk, poses)["femur_r"]["twist_deg"] == pytest.approx(0.0, abs=0.3)
+    fixed = turn_femurs(sk, wrong[50], {k: v["twist_deg"] for k, v in est.items()})
+    for s in "rl":
+        i = idx[f"femur_{s}"]
+        d = np.linalg.solve(poses[50, i], fixed[i])
+        assert np.degrees(np.linalg.norm(Rotation.from_matrix(d[:3, :3]).as_rotvec())) < 0.3
+        assert np.allclose(fixed[i][:3, 3], poses[50, i][:3, 3], atol=1e-6)   # about the hip centre
+    # knees flexed less than 25 deg: nothing to read
+    assert knee_flexion_twist(sk, wrong[np.r_[0:8, 112:120]]) == {}
+    with pytest.raises(ValueError, match="transforms"):
+        knee_flexion_twist(sk, wrong[:, :3])
+
+
+def test_functional_trials_turn_the_femurs_of_an_mri_subject(phantom, built, tmp_path, cli):
+    """``--functional walk.c3d``: each femur of the MRI subject is turned by the twist its knee's
+    flexion axis reads in the walk (the report says by how much), only the legs' bindings move, and
+    animating the walk with the new binding reads (nearly) no twist left. Without ``--static``, or
+    without MRI (the template's knee axis is not the subject's: measured worse), it is a clear error."""
+    from bonecap.animate import solve_trial, trial_markers
+    from bonecap.build_subject import knee_flexion_twist
+    from bonecap.io.c3d import read_c3d
+    from bonecap.subject import read_subject
+
+    stations = sorted(str(p) for p in (phantom / "mri").glob("station_*"))
+    walk = str(phantom / "trials/walk.c3d")
+    res = cli("build-subject", *stations, "--static", str(phantom / "trials/static.c3d"), "--functional", walk,
+              "-o", str(tmp_path / "f"))
+    assert res.returncode == 0, res.stderr
+    rep = json.loads((tmp_path / "f/report.json").read_text())
+    turned = rep["functional_femur_turned_deg"]
+    assert set(turned) == {"femur_r", "femur_l"} and all(abs(v) < 45 for v in turned.values())
+    assert all(d["frames"] >= 20 for d in rep["functional_knee_twist"].values())
+    before, after = read_subject(built[0], load_meshes=False), read_subject(tmp_path / "f", load_meshes=False)
+    moved = {n for n in after.markers
+             if np.linalg.norm(after.markers[n].local - before.markers[n].local) > 1e-6}
+    legs = ("femur", "patella", "tibia", "fibula", "talus", "calcaneus", "foot")
+    assert moved and all(after.markers[n].bone.startswith(legs) for n in moved), moved
+    trial = read_c3d(walk)
+    names, measured, _ = trial_markers(after, trial)
+    left = knee_flexion_twist(after.skeleton, solve_trial(after, names, measured, rate=trial.rate).transforms)
+    assert all(abs(left[f]["twist_deg"]) < max(1.5, 0.3 * abs(turned[f])) for f in turned), (left, turned)
+    res = cli("build-subject", *stations, "--functional", walk, "-o", str(tmp_path / "x"))
+    assert res.returncode != 0 and "--functional needs --static" in res.stderr
+    assert not (tmp_path / "x").exists()
+    res = cli("build-subject", "--static", str(phantom / "trials/static.c3d"), "--functional", walk,
+              "-o", str(tmp_path / "s"))
+    assert res.returncode != 0 and "--functional needs the MRI stations" in res.stderr
+    assert not (tmp_path / "s").exists()
