@@ -15,7 +15,8 @@ Stages run today:
    tiny``): a varied skeleton and body, MRI stations and forearm stacks,
    trials, and their truth.
 6. **build-subject** on the phantom's MRI stations, its static trial and its
-   three forearm stacks: the personal skeleton with bound markers.
+   three forearm stacks, with its walk as the functional trial (the femurs'
+   twist from the knees' flexion axis): the personal skeleton with bound markers.
 7. **animate** the phantom's trials with that subject.
 8. **evaluate** both against the phantom's truth.
 
@@ -198,10 +199,13 @@ def _subject_and_motion(out: Path, report: dict[str, Any], bar) -> None:
     t0 = time.perf_counter()
     stations = sorted(str(p) for p in (ph / "mri").glob("station_*"))
     forearm = sorted((str(p) for p in (ph / "mri").glob("forearm_*")), key=lambda x: float(x.rsplit("_", 1)[1]))
+    # the walk's knees correct the femurs' twist in the static binding (build-subject --functional)
+    walk = ph / "trials" / "walk.c3d"
     built = run_build_subject(stations, out / "subject", static=ph / "trials" / "static.c3d",
-                              forearm_poses=forearm)
+                              forearm_poses=forearm, functional=[str(walk)] if walk.exists() else None)
     report["subject"] = {"bones": built["bones"], "markers_bound": built["markers_bound"],
                          "extracted_bones": len(built["extracted_bones"]),
+                         "femurs_turned_deg": built.get("functional_femur_turned_deg"),
                          "forearm_twists_deg": (built.get("forearm") or {}).get("twists_deg"),
                          "seconds": round(time.perf_counter() - t0, 1)}
     report["outputs"]["subject"] = str(out / "subject")

@@ -59,6 +59,8 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
     # stages 6-8: build-subject on the phantom, animate its trials, evaluate both
     assert (out / "subject/subject.yaml").is_file() and report["subject"]["bones"] == 90
     assert report["subject"]["markers_bound"] >= 57
+    # the walk corrected both femurs' twist (build-subject --functional)
+    assert set(report["subject"]["femurs_turned_deg"]) == {"femur_r", "femur_l"}
     assert set(report["animate"]) == set(report["phantom"]["trials"])
     for t, r in report["animate"].items():
         assert (out / "animate" / f"{t}.glb").is_file() and r["valid_share"] > 0.5
