@@ -345,7 +345,7 @@ def turn_femurs(skeleton: Skeleton, poses: np.ndarray, twists: dict[str, float])
 
     out = np.array(poses, dtype=float, copy=True)
     idx = {n: i for i, n in enumerate(skeleton.names)}
-    for femur, tibia, hip_f, knee_f, _, _ in _knees(skeleton):
+    for femur, _, hip_f, knee_f, _, _ in _knees(skeleton):
         if femur not in twists or not np.isfinite(out[idx[femur]]).all():
             continue
         u = (knee_f - hip_f) / np.linalg.norm(knee_f - hip_f)
