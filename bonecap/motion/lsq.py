@@ -38,10 +38,15 @@ independent until the gap rule, so a long trial is solved in blocks of
 cache; long trials solve about as fast as one segment at a time did,
 short ones 1.5-1.7x faster). Along weakly
 determined directions (the axial twist of a shank with two markers) the
-descent is slow: on the phantom's trials 6 sweeps (the default) give the
+descent is slow: on the phantom's trials 6 sweeps (the default) gave the
 same median / p95 bone errors as 30 within ~0.03 / 0.2 degree, while single
-frames of such a bone still move by up to ~3 degrees between 6 and 30
-sweeps (``n_sweeps``).
+frames of such a bone still moved by up to ~3 degrees between 6 and 30
+sweeps (``n_sweeps``). A thigh whose static binding is off is slower still:
+on a whole-body phantom's walk (seed 1, standard protocol) its left femur
+was 11.2 degrees off after 6 sweeps, 9.4 after 12, 6.8 after 30 and 5.2
+after 100 (the median over bones 2.03 -> 1.93, the static trial settled in
+6); over-relaxing the updates (1.5, 1.8) slowed it further.
+``build-subject --functional`` reads the thigh's turn on these same sweeps.
 
 The closed-form weighted fit is Horn's (1987) unit-quaternion solution with
 the largest eigenvalue found by Newton's method on the characteristic
