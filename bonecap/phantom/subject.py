@@ -2352,14 +2352,18 @@ def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, ta
         n_in = len(faces)
         del verts
         # quadric decimation now and then pinches two sheets into a non-manifold edge: retry with
-        # other targets (each try ~0.1-0.5 s)
-        for frac in (1.0, 0.9, 0.8):
+        # other targets (each try ~0.1-0.5 s); only when none gives a repairable mesh are fins (a sliver
+        # folded into two coincident faces of opposite winding) dropped too, so that the meshes of the
+        # phantoms that decimated before stay as they were (default seed 3's fascia had fins at all three)
+        for frac, fins in ((1.0, False), (0.9, False), (0.8, False), (1.0, True), (0.9, True), (0.8, True)):
             v, fc = _simplify(v32, faces, 1.0 - frac * max_faces / n_in)
             # process=True: merge the vertices the decimation left coincident, drop degenerate faces
             tm = trimesh.Trimesh(v, fc, process=True)
             del v, fc
-            dec = _repair_pinches(np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64))
+            V_, F_ = np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64)
             del tm
+            dec = _repair_pinches(*(_drop_fins(V_, F_) if fins else (V_, F_)))
+            del V_, F_
             if dec is not None:
                 verts, faces = dec
                 break
@@ -2375,6 +2379,31 @@ def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, ta
     if _signed_volume(verts, faces) < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])
     return Mesh(np.asarray(verts, dtype=float), np.asarray(faces), WORLD)
+
+
+def _drop_fins(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its fins: pairs of faces on the same three vertices, wound opposite ways.
+
+    Quadric decimation now and then folds a sliver flat into two coincident
+    triangles back to back, a zero-volume fin whose edges then join three or
+    four faces (default phantom, seed 3: the fascia, two such pairs on every
+    decimation target tried). The two faces of a pair enclose nothing:
+    both go, and the surface around them closes over their edges (what is
+    left of them is then repaired by :func:`_repair_pinches`).
+    """
+    F = np.asarray(F, dtype=np.int64)
+    srt = np.sort(F, axis=1)
+    # the winding: an even (+1) or odd (-1) permutation of the sorted triple
+    parity = np.where((F[:, 0] == srt[:, 0]) & (F[:, 1] == srt[:, 1]) | (F[:, 1] == srt[:, 0]) & (F[:, 2] == srt[:, 1])
+                      | (F[:, 2] == srt[:, 0]) & (F[:, 0] == srt[:, 1]), 1, -1)
+    _, inv, counts = np.unique(srt, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    drop = np.zeros(len(F), bool)
+    for g in np.flatnonzero(counts == 2):
+        pair = np.flatnonzero(inv == g)
+        if parity[pair[0]] != parity[pair[1]]:
+            drop[pair] = True
+    return np.asarray(V, dtype=float), F[~drop]
 
 
 def _repair_pinches(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
