@@ -352,6 +352,7 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         if b.mesh is not None and not name.startswith(_LONG):
             pts.append(b.mesh.transformed(b.bone_to_world).vertices.mean(axis=0))
         if name.startswith(_LONG) and len(pts) >= 2:
+            V = b.mesh.transformed(b.bone_to_world).vertices if b.mesh is not None else None
             # the shaft's two ends only: proximal = first, distal = farthest from it
             d = [np.linalg.norm(p - pts[0]) for p in pts]
             far = int(np.argmax(d))
@@ -366,7 +367,7 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                             for o in meshes)
                 if reach > 0.0:
                     pts[1] = pts[1] + float(min(margin_mm + reach, 0.25 * length)) * back
-            elif b.mesh is not None and not any(
+            elif V is not None and not any(
                     n in bones and n.startswith(_LONG) and list(template.bones[n].joint_centres)[0] == j
                     for n, j in group_of[(name, list(b.joint_centres)[far])] if n != name):
                 # a bone that goes on far past its distal joint centre, where no other long bone's line
@@ -375,11 +376,11 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                 # past the radius's or the humerus's (it stopped 20 mm short: a phantom's malleoli lost)
                 length = float(np.linalg.norm(pts[1] - pts[0]))
                 u = (pts[1] - pts[0]) / max(length, 1e-9)
-                own = float(((b.mesh.transformed(b.bone_to_world).vertices - pts[1]) @ u).max())
+                own = float(((V - pts[1]) @ u).max())
                 if own > margin_mm:
                     pts[1] = pts[1] + (own - 0.5 * margin_mm) * u
-            if b.mesh is not None:
-                pts = shaft_line(b.mesh.transformed(b.bone_to_world).vertices, pts[0], pts[1])
+            if V is not None:
+                pts = shaft_line(V, pts[0], pts[1])
         if not pts:
             continue
         p = np.asarray(pts) @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
@@ -933,9 +934,12 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
         # lying as standing, so the tibia keeps its MRI twist relative to the femur. The hip and the
         # shoulder are not locked (legs roll outward supine, the arms are abducted in the static): their
         # twist stays the markers'.
-        guessed = [t for t in ("tibia_r", "tibia_l") if t in sk.bones and any(
-            subject.markers[n].bone in (t, t.replace("tibia", "fibula")) and subject.markers[n].source != "capsule"
-            for n in snames)]
+        def unmeasured(bones_of):
+            """Those of ``bones_of`` (bone -> the bones whose markers count) that carry a marker no capsule measured."""
+            return [b for b, group in bones_of.items() if b in sk.bones and any(
+                subject.markers[n].bone in group and subject.markers[n].source != "capsule" for n in snames)]
+
+        guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
         report["static_knee_twist_from_mri"] = guessed
 
         def chain(solved):
@@ -952,9 +956,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
         if functional:
             # the femur's twist from the knee's flexion axis in the movement trials, where no capsule
             # measured the thigh's markers (a capsule puts them within a millimetre of the truth)
-            guessed_f = [f for f in ("femur_r", "femur_l") if f in sk.bones and any(
-                subject.markers[n].bone in (f, f.replace("femur", "patella"))
-                and subject.markers[n].source != "capsule" for n in snames)]
+            guessed_f = unmeasured({f: (f, f.replace("femur", "patella")) for f in ("femur_r", "femur_l")})
             subject.markers.update(bound)
             twists = functional_twists(subject, functional)
             report["functional_knee_twist"] = {f: {k: round(v, 2) for k, v in d.items()} for f, d in twists.items()}

@@ -372,11 +372,10 @@ def _split_joints(labels: np.ndarray, ids: dict[str, int], seeds: Mapping[str, n
 
 def _marrow_candidates(med: np.ndarray, body: np.ndarray, pixel_mm: float, m_slice: float, opts: Mapping
                        ) -> np.ndarray:
-    """A slice's marrow pixels before they are split into regions: brighter than ``marrow_over_muscle`` x
-    muscle, or inside a closed ring of cortex however dim (:func:`~bonecap.segmentation.cortical.enclosed_marrow`)."""
-    cand = body & (med > opts.get("marrow_over_muscle", 1.2) * m_slice)
-    return cand | cortical.enclosed_marrow(med, body, m_slice, pixel_mm,
-                                           max_area_mm2=opts.get("enclosed_max_mm2", cortical.ENCLOSED_MAX_MM2))
+    """:func:`~bonecap.segmentation.cortical.marrow_candidates` with a bone's options."""
+    return cortical.marrow_candidates(med, body, m_slice, pixel_mm,
+                                      marrow_over_muscle=opts.get("marrow_over_muscle", 1.2),
+                                      enclosed_max_mm2=opts.get("enclosed_max_mm2", cortical.ENCLOSED_MAX_MM2))
 
 
 def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float, opts: Mapping

@@ -27,7 +27,8 @@ Public API
 - :func:`muscle_level` ``(image, mask, nbins=64) -> float``,
   :func:`local_muscle_level` ``(image, seed_ij, pixel_mm, body_mask=None, radius_mm=65.0) -> float``
 - :func:`detach_from_skin` ``(candidates, body, inner, pixel_mm, neck_mm=1.5) -> (labels, n)``
-- :func:`enclosed_marrow` ``(image, body, muscle, pixel_mm, dark_below=0.8, max_area_mm2=150.0) -> ndarray[bool]``
+- :func:`enclosed_marrow` ``(image, body, muscle, pixel_mm, dark_below=0.8, max_area_mm2=150.0) -> ndarray[bool]``,
+  :func:`marrow_candidates` ``(image, body, muscle, pixel_mm, marrow_over_muscle=1.2, enclosed_max_mm2=150.0) -> ndarray[bool]``
 - :func:`find_marrow` ``(image, seed_ij, pixel_mm, body_mask=None, search_radius_mm=25.0, ...) -> ndarray[bool]``
 - :func:`cortical_contour` ``(image, marrow, pixel_mm, muscle, ...) -> ndarray[bool]``
 - :func:`cortical_edge_slice` ``(image, seed_ij, pixel_mm, body_mask=None, search_radius_mm=25.0, ...) -> ndarray[bool]``
@@ -47,7 +48,7 @@ from skimage.draw import polygon2mask
 from bonecap.segmentation.density import fill_holes
 from bonecap.segmentation._checks import check_image, check_mask, check_seed
 
-__all__ = ["muscle_level", "local_muscle_level", "detach_from_skin", "enclosed_marrow", "find_marrow", "cortical_contour", "cortical_edge_slice"]
+__all__ = ["muscle_level", "local_muscle_level", "detach_from_skin", "enclosed_marrow", "marrow_candidates", "find_marrow", "cortical_contour", "cortical_edge_slice"]
 
 _EIGHT = np.ones((3, 3), bool)
 
@@ -345,6 +346,19 @@ def enclosed_marrow(image: np.ndarray, body: np.ndarray, muscle: float, pixel_mm
     return keep[lab]
 
 
+def marrow_candidates(image: np.ndarray, body: np.ndarray, muscle: float, pixel_mm: float, *,
+                      marrow_over_muscle: float = 1.2, enclosed_max_mm2: float = ENCLOSED_MAX_MM2) -> np.ndarray:
+    """A slice's marrow pixels before they are split into regions (the body's, after noise removal).
+
+    Brighter than ``marrow_over_muscle`` x ``muscle``, or inside a closed ring
+    of cortex however dim (:func:`enclosed_marrow`, up to ``enclosed_max_mm2``;
+    0: bright marrow only). :func:`find_marrow` and
+    :func:`bonecap.segmentation.bones.segment_bones` both start from these.
+    """
+    cand = np.asarray(body, bool) & (image > marrow_over_muscle * muscle)
+    return cand | enclosed_marrow(image, body, muscle, pixel_mm, max_area_mm2=enclosed_max_mm2)
+
+
 def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarray | None = None,
                 search_radius_mm: float = 25.0, *, muscle: float | None = None, marrow_over_muscle: float = 1.2,
                 min_marrow_mm2: float = 6.0, skin_band_mm: float = 3.0, sigma_px: float = 0.7,
@@ -428,14 +442,15 @@ def find_marrow(image: np.ndarray, seed_ij, pixel_mm: float, body_mask: np.ndarr
     if not np.isfinite(m) or m <= 0:
         return out
     # Candidates over the whole body, so that fat reaching into the skin band is one region with it.
-    cand = b & (img > marrow_over_muscle * m)
     if body_mask is not None:
-        # a canal too narrow to show bright, inside its closed ring of cortex
-        cand |= enclosed_marrow(img, b, m, pixel_mm, max_area_mm2=enclosed_max_mm2)
+        # bright, or a canal too narrow to show bright inside its closed ring of cortex
+        cand = marrow_candidates(img, b, m, pixel_mm, marrow_over_muscle=marrow_over_muscle,
+                                 enclosed_max_mm2=enclosed_max_mm2)
         # fat reaching the skin is dropped, marrow joined to it through a gap in the cortex cut loose
         lab, n = detach_from_skin(cand, b, inner, pixel_mm)
     else:
-        lab, n = ndimage.label(cand, structure=_EIGHT)
+        # without a body the air around it would enclose it: bright marrow only
+        lab, n = ndimage.label(b & (img > marrow_over_muscle * m), structure=_EIGHT)
     if n == 0:
         return out
     bad = np.zeros(n + 1, bool)
