@@ -19,8 +19,11 @@
    MRI-visible capsule found near it (centre one marker-minus-capsule radius
    out along the skin normal) replaces the guess; with a static trial the
    skeleton is posed to it (a shank without capsules keeps the MRI's knee
-   rotation, the foot its roll from the shank) and the measured positions are
-   bound.
+   rotation, the foot its roll from the shank) and the markers without a
+   capsule are bound at their measured positions. A capsule marker keeps its
+   MRI binding unless the static refutes its segment's (a hand or foot the
+   scan did not measure, carried at the template's angle): that segment is
+   bound from the static.
 8. **Forearm model** from three forearm stacks (``--forearm-poses``).
 
 Everything is in LPS millimetres; the subject's world frame is ``lps``.
@@ -885,9 +888,10 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     ``functional``: ``(trial, path)`` of movement trials whose knee flexion corrects the femurs' twist
     (:func:`bonecap.build_subject.knee_flexion_twist`)."""
     from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, bind_static,
-                                       functional_twists, joint_consistent, neutral_twist, pose_to_static,
-                                       static_markers, turn_femurs)
+                                       capsule_static_disagreement, functional_twists, joint_consistent,
+                                       neutral_twist, pose_to_static, static_markers, turn_femurs)
     from bonecap.markers import place_markers
+    from bonecap.motion.lsq import plan_segments
     from bonecap.subject import MarkerBinding
 
     sk = subject.skeleton
@@ -917,17 +921,18 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
         report["capsules_matched"] = sorted(capsule_names)
         if capsule_names and subject.skin is not None:
             capsule_names = capsules_to_markers(capsule_names, subject.skin)
+    landmark_local = {}     # over the landmarks, for a capsule binding the static refutes
     for n in names:
         m = mset.markers[n]
-        p = capsule_names.get(n, placed[n])
         T = sk.bones[m.bone].bone_to_world
+        landmark_local[n] = T[:3, :3].T @ (placed[n] - T[:3, 3])
+        p = capsule_names.get(n, placed[n])
         subject.markers[n] = MarkerBinding(n, m.bone, T[:3, :3].T @ (p - T[:3, 3]),
                                            "capsule" if n in capsule_names else "placed")
     if static_trial is not None:
         snames, lab = static_markers(static_trial, mset, path=static_path)
         bones = [subject.markers[n].bone for n in snames]
-        local = np.array([subject.markers[n].local for n in snames])
-        solved = pose_to_static(sk, bones, local, lab)
+
         # The shank's twist about its long axis hangs on one shank marker placed over a landmark-less
         # shaft (10-12 deg of error on the phantom). Where no capsule measured the shank's markers, the
         # knee's axial rotation is taken from the MRI: in full extension the knee is locked (screw-home)
@@ -939,9 +944,6 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             return [b for b, group in bones_of.items() if b in sk.bones and any(
                 subject.markers[n].bone in group and subject.markers[n].source != "capsule" for n in snames)]
 
-        guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
-        report["static_knee_twist_from_mri"] = guessed
-
         def chain(solved):
             if guessed:
                 solved = neutral_twist(sk, solved, tuple(guessed))
@@ -950,8 +952,38 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)
             return joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
 
+        def solve_static():
+            local = np.array([subject.markers[n].local for n in snames])
+            return local, pose_to_static(sk, bones, local, lab)
+
+        local, solved = solve_static()
+        guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
         poses = chain(solved)
-        bound = bind_static(sk, snames, bones, lab, poses)
+        # A capsule binds its marker to the bone as the bone lies in the MRI: right where the scan measured
+        # the bone, a guess where it did not (hands and feet carried at the template's wrist and ankle
+        # angles). Capsule markers keep their MRI binding unless their segment's pattern does not fit the
+        # static (then the whole segment is bound from the static, as markers without capsules are).
+        caps_in_static = {n for n in snames if subject.markers[n].source == "capsule"}
+        if caps_in_static:
+            rms, flagged = capsule_static_disagreement(sk, snames, bones, local, lab, poses, caps_in_static)
+            report["capsule_static_rms_mm"] = {r: round(v, 2) for r, v in rms.items()}
+            report["capsule_segments_bound_from_static"] = flagged
+            if flagged:
+                plan = plan_segments(sk, bones)
+                for n, b in zip(snames, bones):
+                    if n in caps_in_static and plan.segments[plan.segment_of[b]].root in flagged:
+                        subject.markers[n] = MarkerBinding(n, b, landmark_local[n], "placed")
+                        caps_in_static.discard(n)
+                local, solved = solve_static()
+                guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
+                poses = chain(solved)
+        report["static_knee_twist_from_mri"] = guessed
+
+        def bind(poses):
+            """The static's markers bound at ``poses``; capsule bindings kept."""
+            return {n: b for n, b in bind_static(sk, snames, bones, lab, poses).items() if n not in caps_in_static}
+
+        bound = bind(poses)
         placed_local = {n: subject.markers[n].local for n in bound}
         if functional:
             # the femur's twist from the knee's flexion axis in the movement trials, where no capsule
@@ -963,12 +995,12 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             turn = {f: d["twist_deg"] for f, d in twists.items() if f in guessed_f}
             if turn:
                 poses = chain(turn_femurs(sk, solved, turn))
-                bound = bind_static(sk, snames, bones, lab, poses)
+                bound = bind(poses)
             report["functional_femur_turned_deg"] = {f: round(v, 2) for f, v in turn.items()}
         moved = {n: float(np.linalg.norm(bound[n].local - placed_local[n])) for n in bound}
         subject.markers.update(bound)
         report["static_binding_shift_mm"] = {k: round(v, 2) for k, v in moved.items()}
-        report["markers_missing_in_static"] = [n for n in names if n not in bound]
+        report["markers_missing_in_static"] = [n for n in names if n not in bound and n not in caps_in_static]
         subject.static = {"trial": str(static_path), "markers_lab": {n: p for n, p in zip(snames, lab)},
                           "bone_to_lab": {b: poses[i] for i, b in enumerate(sk.names)
                                           if np.isfinite(poses[i]).all()}}

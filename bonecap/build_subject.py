@@ -432,6 +432,67 @@ def bind_static(skeleton: Skeleton, names: list[str], marker_bones: list[str], s
     return out
 
 
+#: A segment's capsule-measured markers are trusted while they fit the static trial to within this RMS
+#: (mm): the capsule centre (~1 mm), the static's noise (0.5 mm) and the soft-tissue artefact of markers
+#: over bony landmarks (2-3 mm, Leardini et al. 2005) between lying in the scanner and standing.
+CAPSULE_STATIC_TOLERANCE_MM = 4.0
+
+
+def capsule_static_disagreement(skeleton: Skeleton, names: list[str], marker_bones: list[str],
+                                marker_local: np.ndarray, static_lab: np.ndarray, bone_to_lab: np.ndarray,
+                                capsule_names, *, tolerance_mm: float = CAPSULE_STATIC_TOLERANCE_MM
+                                ) -> tuple[dict[str, float], list[str]]:
+    """Per rigid segment, how far its capsule-measured markers sit from the posed static.
+
+    A capsule gives a marker's position in the MRI to about a millimetre, but
+    it binds the marker to the bone as that bone lies in the MRI. Where the
+    scan did not measure the bone (a hand or a foot carried from its
+    neighbours at the template's wrist or ankle angle) a wrong MRI pose moves
+    every capsule binding of the segment together; the static trial then sees
+    the segment's markers as a rigid pattern its joints do not let fit. Such
+    a segment is better bound from the static, as markers without capsules are.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The subject (MRI world).
+    names, marker_bones : list of str
+        The static's markers and their bones.
+    marker_local : ndarray (M, 3)
+        The bindings the static was solved with (bone frames, mm).
+    static_lab : ndarray (M, 3)
+        The measured static markers (lab, mm).
+    bone_to_lab : ndarray (B, 4, 4)
+        The solved static pose of every bone of ``skeleton.names`` (lab, mm).
+    capsule_names : collection of str
+        The markers whose bindings came from capsules.
+    tolerance_mm : float
+        A segment whose capsule markers' RMS residual exceeds it is flagged.
+
+    Returns
+    -------
+    rms : dict of str -> float
+        Segment root bone -> RMS residual (mm) of its capsule markers.
+    flagged : list of str
+        The segment roots over ``tolerance_mm``.
+    """
+    from bonecap.motion.lsq import plan_segments
+
+    if not (np.isfinite(tolerance_mm) and tolerance_mm > 0):
+        raise ValueError(f"tolerance_mm must be a positive number of millimetres, got {tolerance_mm!r}")
+    plan = plan_segments(skeleton, marker_bones)
+    index = {n: i for i, n in enumerate(skeleton.names)}
+    sq: dict[str, list[float]] = {}
+    for n, b, loc, p in zip(names, marker_bones, np.asarray(marker_local, float), np.asarray(static_lab, float)):
+        T = bone_to_lab[index[b]]
+        if n not in capsule_names or not (np.isfinite(T).all() and np.isfinite(p).all()):
+            continue
+        root = plan.segments[plan.segment_of[b]].root
+        sq.setdefault(root, []).append(float(np.sum((T[:3, :3] @ loc + T[:3, 3] - p) ** 2)))
+    rms = {r: float(np.sqrt(np.mean(v))) for r, v in sq.items()}
+    return rms, sorted(r for r, v in rms.items() if v > tolerance_mm)
+
+
 def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike = "default",
                       marker_set: str | os.PathLike | None = None, subject_name: str | None = None,
                       iterations: int = 3, static_frames: str | None = None) -> tuple[Subject, dict[str, Any]]:

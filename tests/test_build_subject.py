@@ -441,3 +441,106 @@ def test_functional_trials_turn_the_femurs_of_an_mri_subject(phantom, built, tmp
               "-o", str(tmp_path / "s"))
     assert res.returncode != 0 and "--functional needs the MRI stations" in res.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_capsule_bindings_the_static_refutes_are_flagged_by_segment():
+    """capsule_static_disagreement: capsule bindings made with the right hand lying off in the MRI (a hand
+    carried at the template's wrist: 20 deg turned about its long axis, which the wrist does not allow,
+    and 8 mm aside) fit the static only as a pattern its joints refuse: the hand's segment is flagged, no
+    other. Capsules within 1.4 mm of their places pass."""
+    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES,
+                                       capsule_static_disagreement, joint_consistent, neutral_twist,
+                                       pose_to_static)
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.markers import load_marker_set, place_markers
+    from bonecap.skeleton.generic import build_generic_skeleton
+
+    sk = build_generic_skeleton()
+    mset = load_marker_set("kojima_paper")
+    names = [n for n, m in mset.markers.items() if not m.virtual and not m.optional]
+    placed = place_markers(mset, sk, names)
+    bones = [mset.markers[n].bone for n in names]
+    ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
+    idx = {n: i for i, n in enumerate(sk.names)}
+    rng = np.random.default_rng(0)
+    # the static: the subject standing as in the reference pose (lab = world), 0.5 mm noise
+    static = np.array([placed[n] for n in names]) + rng.normal(0.0, 0.5, (len(names), 3))
+
+    def posed(local):
+        """The static solved as build-subject does: the hand's twist the radius's, the foot's roll the
+        shank's, the chain rebuilt through its joint centres."""
+        solved = neutral_twist(sk, pose_to_static(sk, bones, local, static), HAND_PREFIXES, HAND_AXES)
+        return joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
+
+    def local(world):
+        return np.array([(p - ref[idx[b]][:3, 3]) @ ref[idx[b]][:3, :3] for p, b in zip(world, bones)])
+
+    capsules = set(names)
+    good = local(np.array([placed[n] for n in names]) + rng.uniform(-0.8, 0.8, (len(names), 3)))
+    rms, flagged = capsule_static_disagreement(sk, names, bones, good, static, posed(good), capsules)
+    assert flagged == [] and max(rms.values()) < 3.0, rms
+    # the right hand's capsules as bound to a hand lying turned and shifted in the MRI
+    hand = [i for i, b in enumerate(bones) if b.startswith(("carpals", "ray")) and b.endswith("_r")]
+    assert len(hand) >= 4
+    wrist = sk.bones["carpals_r"].landmark_in_world("wrist")
+    mc3 = sk.bones["ray3_r"].landmark_in_world("metacarpal_head")
+    R = Rotation.from_rotvec(np.radians(20.0) * (mc3 - wrist) / np.linalg.norm(mc3 - wrist)).as_matrix()
+    world = np.array([placed[n] for n in names])
+    world[hand] = (world[hand] - wrist) @ R.T + wrist + sk.bones["radius_r"].bone_to_world[:3, 2] * 8.0
+    bad = local(world)
+    rms, flagged = capsule_static_disagreement(sk, names, bones, bad, static, posed(bad), capsules)
+    assert flagged == ["carpals_r"] and rms["carpals_r"] > 5.0, rms
+    assert {bones[i] for i in hand} <= {b for b in sk.names if b == flagged[0] or _descends(sk, b, flagged[0])}
+    # markers without capsules are never looked at
+    assert capsule_static_disagreement(sk, names, bones, bad, static, posed(bad), set())[1] == []
+    with pytest.raises(ValueError, match="tolerance_mm"):
+        capsule_static_disagreement(sk, names, bones, bad, static, ref, capsules, tolerance_mm=0.0)
+
+
+def test_capsule_markers_keep_their_mri_binding_unless_the_static_refutes_it(monkeypatch):
+    """build-subject's binding with an MRI-visible capsule under every marker (the paper's protocol): the
+    markers sit up to 8 mm (5 mm along each axis) from where the marker set's landmarks put them, the capsule finder sees them
+    there, the static is the subject standing as it lay. Each capsule marker keeps its MRI binding, exact,
+    except on a segment whose capsules the static refutes -- the right hand's, found as a hand lying 25
+    deg turned and 10 mm aside in the MRI would show them -- which is bound from the static."""
+    from scipy.spatial.transform import Rotation
+
+    import bonecap.segmentation.capsules as capsules_mod
+    from bonecap.build_mri import _place_and_bind
+    from bonecap.markers import load_marker_set, place_markers
+    from bonecap.model import Trial
+    from bonecap.skeleton.generic import build_generic_skeleton
+    from bonecap.subject import Subject
+
+    sk = build_generic_skeleton()
+    mset = load_marker_set("kojima_paper")
+    names = [n for n, m in mset.markers.items() if not m.virtual and not m.optional]
+    rng = np.random.default_rng(3)
+    true = {n: p + rng.uniform(-5.0, 5.0, 3) for n, p in place_markers(mset, sk, names).items()}
+    hand = [n for n in names if mset.markers[n].bone.startswith(("carpals", "ray")) and mset.markers[n].bone.endswith("_r")]
+    assert len(hand) >= 4
+    wrist = sk.bones["carpals_r"].landmark_in_world("wrist")
+    axis = sk.bones["ray3_r"].landmark_in_world("metacarpal_head") - wrist
+    R = Rotation.from_rotvec(np.radians(25.0) * axis / np.linalg.norm(axis)).as_matrix()
+    shown = dict(true)
+    for n in hand:
+        shown[n] = R @ (true[n] - wrist) + wrist + np.array([0.0, 10.0, 0.0])
+    # the capsule finder sees a capsule under each marker (its marker-minus-capsule radius outward left out)
+    monkeypatch.setattr(capsules_mod, "find_capsules", lambda vol: (np.array([shown[n] for n in names]), None))
+    monkeypatch.setattr("bonecap.build_mri.capsules_to_markers", lambda found, skin: found)
+    static = Trial(labels=list(names), points=np.array([[true[n] for n in names]] * 3)
+                   + rng.normal(0.0, 0.5, (3, len(names), 3)), rate=100.0)
+    subject = Subject(skeleton=sk, skin=None, marker_set=mset.name)
+    report = _place_and_bind(subject, mset, [object()], None, static, "static.c3d")
+    assert sorted(report["capsules_matched"]) == sorted(names)
+    assert report["capsule_segments_bound_from_static"] == ["carpals_r"]
+    assert report["capsule_static_rms_mm"]["carpals_r"] > 5.0
+    kept = [n for n, m in subject.markers.items() if m.source == "capsule"]
+    assert sorted(kept) == sorted(set(names) - set(hand))
+    for n in kept:          # the MRI binding, not the static's
+        assert np.linalg.norm(subject.marker_world(n) - true[n]) < 1e-9
+    assert all(subject.markers[n].source == "static" for n in hand)
+    assert report["markers_missing_in_static"] == []
+    # bound from the static, the hand's markers lie where the standing subject shows them (lab = world)
+    assert max(np.linalg.norm(subject.marker_world(n) - true[n]) for n in hand) < 3.0
