@@ -671,10 +671,14 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     skull_fixed = {n: skull_A for n in ("skull", "mandible") if n in posed.bones and n not in targets} \
         if skull_report is not None and skull_report["used"] else None
     if targets:
+        # a user's label map says nothing of where it was looked for: no cut
+        cut = unseen_ends(targets, seed_map, vols, margin_mm=seg_settings.get("margin_mm", 20.0)) \
+            if labels is None else {}
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
-                                              max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed)
+                                              max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed,
+                                              unseen=cut)
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly
@@ -784,6 +788,72 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         qc(folder)
 
     return subject, report, qc_and_meshes
+
+
+def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: list[Volume], *,
+                margin_mm: float = 20.0) -> dict[str, list[tuple[np.ndarray, float]]]:
+    """Where each long bone's extraction ends because the search did, not the bone: half-spaces for the warp.
+
+    The cortical rule looks for a long bone on the slices its seed polyline
+    crosses and ``margin_mm`` beyond its ends
+    (:func:`bonecap.segmentation.bones.slice_seeds`), within the stations'
+    field of view. A bone labelled up to the last slice searched goes on
+    beyond it (the tibia's line ends short of the talus, the femoral head's
+    dome rises above the hip centre's margin, a short template's wrist): the
+    extraction's end there is a cut. Left as it is, the warp's ICPs and
+    feature points take the cut for the bone's end and shrink the personal
+    bone to it (a phantom's tibias came out 12-37 mm short, its forearms
+    11-15 mm: their ISB origins, at the malleoli and the ulnar styloid,
+    moved with them). The half-space covers the extraction's last slice
+    pitch (its cap, ``normal . p > offset``, LPS); the warp then
+    extrapolates the template there (:func:`bonecap.skeleton.warp.warp_skeleton`'s
+    ``unseen``).
+
+    Parameters
+    ----------
+    extracted : dict of str -> Mesh
+        Extracted bone surfaces (LPS mm).
+    seeds : dict of str -> ndarray (N, 3)
+        The seed polylines the slice rules searched along (LPS mm).
+    vols : list of Volume
+        The axial stations (their slices' z and pitch).
+    margin_mm : float
+        How far past a polyline's ends the search went.
+
+    Returns
+    -------
+    dict of str -> list of (normal, offset)
+        The long bones with a cut end (an extraction ending at a search's or
+        the images' end), in LPS: ``normal`` along the slice axis (-z for a
+        cut at the feet's end of axial stations, +z at the head's). Empty
+        when the stations' slice axes differ.
+    """
+    if not vols:
+        return {}
+    # the slice axis (z for axial stations; a sagittal knee's is x): the stations must share it
+    u = vols[0].affine[:3, 2] / np.linalg.norm(vols[0].affine[:3, 2])
+    u = u if u[np.argmax(np.abs(u))] > 0 else -u
+    if any(abs(float(v.affine[:3, 2] @ u)) < 0.999 * np.linalg.norm(v.affine[:3, 2]) for v in vols):
+        return {}
+    dz = max(float(v.spacing[2]) for v in vols)
+    zs = np.concatenate([[(v.affine @ [0.0, 0.0, k, 1.0])[:3] @ u for k in (0, v.shape[2] - 1)] for v in vols])
+    fov_lo, fov_hi = float(zs.min()), float(zs.max())
+    out: dict[str, list[tuple[np.ndarray, float]]] = {}
+    for name, mesh in extracted.items():
+        if not name.startswith(_LONG) or name not in seeds or mesh is None or not len(mesh.vertices):
+            continue
+        z = np.asarray(seeds[name], float).reshape(-1, 3) @ u
+        lo, hi = max(z.min() - margin_mm, fov_lo), min(z.max() + margin_mm, fov_hi)
+        ez = mesh.vertices @ u
+        cuts = []
+        # labelled on the last slice searched: its section reaches half a pitch past that slice's centre
+        if ez.min() < lo + 0.5 * dz + 1.0:
+            cuts.append((-u, -(float(ez.min()) + dz)))
+        if ez.max() > hi - 0.5 * dz - 1.0:
+            cuts.append((u.copy(), float(ez.max()) - dz))
+        if cuts:
+            out[name] = cuts
+    return out
 
 
 def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh], strict: bool = True) -> dict[str, Mesh]:

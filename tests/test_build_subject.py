@@ -544,3 +544,39 @@ def test_capsule_markers_keep_their_mri_binding_unless_the_static_refutes_it(mon
     assert report["markers_missing_in_static"] == []
     # bound from the static, the hand's markers lie where the standing subject shows them (lab = world)
     assert max(np.linalg.norm(subject.marker_world(n) - true[n]) for n in hand) < 3.0
+
+
+def test_unseen_ends_mark_where_the_search_cut_a_long_bone():
+    """unseen_ends: a long bone searched from 20 mm below to 20 mm above its seed line (z 100..300) and
+    labelled down to the last slice searched is cut there (a half-space over its last pitch, -z); its top,
+    which ends 40 mm inside the search, is not; a density-rule bone never is; the images' end cuts too;
+    stations whose slice axes differ give nothing."""
+    import trimesh
+
+    from bonecap.build_mri import unseen_ends
+    from bonecap.model import Mesh, Volume
+
+    def station(z0, n, axis=2):
+        A = np.diag([2.0, 2.0, 5.0, 1.0])
+        A[:3, 3] = [-100.0, -100.0, z0]
+        if axis != 2:                       # slices along x instead
+            A[:3, :3] = np.array([[0.0, 0.0, 5.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+        return Volume(np.zeros((4, 4, n), np.float32), A)
+
+    def rod(z_lo, z_hi):
+        box = trimesh.creation.box(extents=(20.0, 20.0, z_hi - z_lo))
+        return Mesh(np.asarray(box.vertices) + [0.0, 0.0, 0.5 * (z_lo + z_hi)], np.asarray(box.faces), "lps")
+
+    seeds = {"tibia_r": np.array([[0.0, 0.0, 300.0], [0.0, 0.0, 100.0]]),
+             "hip_r": np.array([[0.0, 0.0, 300.0], [0.0, 0.0, 100.0]])}
+    vols = [station(0.0, 50), station(200.0, 50)]
+    cuts = unseen_ends({"tibia_r": rod(78.5, 280.0), "hip_r": rod(78.5, 280.0)}, seeds, vols)
+    assert list(cuts) == ["tibia_r"] and len(cuts["tibia_r"]) == 1
+    n, c = cuts["tibia_r"][0]
+    assert np.allclose(n, [0.0, 0.0, -1.0]) and c == pytest.approx(-(78.5 + 5.0))
+    # ending two slices inside the search: the bone's own end, no cut
+    assert unseen_ends({"tibia_r": rod(92.0, 280.0)}, seeds, vols) == {}
+    # the images end at z = 245 (below the search's top, 320): a bone labelled up to there is cut there too
+    cuts = unseen_ends({"tibia_r": rod(92.0, 246.0)}, seeds, [station(0.0, 50)])
+    assert [np.round(n).tolist() for n, _ in cuts["tibia_r"]] == [[0.0, 0.0, 1.0]]
+    assert unseen_ends({"tibia_r": rod(78.5, 280.0)}, seeds, [station(0.0, 50), station(200.0, 50, axis=0)]) == {}

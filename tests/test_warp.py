@@ -419,3 +419,44 @@ def test_a_chain_between_the_pelvis_and_a_fixed_skull_meets_both():
 
 def _apply_map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return T[:3, :3] @ p + T[:3, 3]
+
+
+def test_a_target_cut_short_is_not_taken_for_the_bone_end():
+    """A segmentation whose search ended 35 mm short of the lower bone's end gives a target cut there
+    (capped, closed). Taken as it is, the warp shrinks the bone to the cut (its distal tip moves up by
+    ~ the missing length); with the cut declared ``unseen`` the bone's end is extrapolated by the affine
+    fitted on the rest (the map is affine there) and lands near the truth. The seen part fits both ways."""
+    template = two_bone_template(4)
+    fine = two_bone_template(5)
+    targets = {n: Mesh(true_map(fine.world_mesh(n).vertices), fine.bones[n].mesh.faces, "lps") for n in fine.bones}
+    low = template.bones["lower"]
+    tip_true = true_map(low.landmark_in_world("tip")[None])[0]
+    axis = true_map(low.landmark_in_world("tip")[None])[0] - true_map(low.bone_to_world[:3, 3][None])[0]
+    axis /= np.linalg.norm(axis)
+    cut_at = tip_true - 35.0 * axis
+    import pyvista as pv
+
+    m = targets["lower"]
+    poly = pv.PolyData(m.vertices, np.hstack([np.full((len(m.faces), 1), 3), m.faces]).ravel())
+    short = poly.clip_closed_surface(normal=tuple(-axis), origin=tuple(cut_at)).triangulate()  # keeps the -axis side
+    faces = np.asarray(short.faces).reshape(-1, 4)[:, 1:]
+    short = trimesh.Trimesh(np.asarray(short.points), faces, process=True)
+    assert short.is_watertight and (short.vertices @ axis).max() < cut_at @ axis + 1e-6
+    targets["lower"] = Mesh(np.asarray(short.vertices), np.asarray(short.faces), "lps")
+    rough = np.eye(4)
+    rough[:3, 3] = AFF[:3, 3]
+    tips, fits = {}, {}
+    for name, unseen in (("plain", None), ("cut", {"lower": [(axis, float(cut_at @ axis) - 5.0)]})):
+        sk, report = warp_skeleton(template, targets, init=rough, unseen=unseen)
+        tips[name] = np.linalg.norm(sk.bones["lower"].landmark_in_world("tip") - tip_true)
+        seen = sk.world_mesh("lower").vertices
+        seen = seen[seen @ axis < cut_at @ axis - 10.0]
+        fits[name] = surface_distance(seen, targets["lower"]).mean()
+        assert ("unseen" in report["bones"]["lower"]) == (unseen is not None)
+    assert tips["plain"] > 10.0, tips          # shrunk towards the cut (15.6 mm)
+    assert tips["cut"] < 3.0, tips            # 0.7 mm
+    assert fits["cut"] < 0.6 and fits["plain"] < 0.6, fits
+    with pytest.raises(ValueError, match="unseen"):
+        warp_skeleton(template, targets, init=rough, unseen={"nosuchbone": [(axis, 0.0)]})
+    with pytest.raises(ValueError, match="half-space"):
+        warp_skeleton(template, targets, init=rough, unseen={"lower": [((0.0, 0.0, 0.0), 1.0)]})

@@ -119,13 +119,17 @@ def _polar_rotation(L: np.ndarray) -> np.ndarray:
 
 
 class _Surface:
-    """A target mesh with what the ICPs and correspondences ask of it (built once per mesh)."""
+    """A target mesh with what the ICPs and correspondences ask of it (built once per mesh).
 
-    def __init__(self, mesh: Mesh):
+    ``unseen``: half-spaces ``(normal, offset)``, ``normal . p > offset``, where the target was not
+    looked for (a segmentation's search ended there): no pair with a point there counts."""
+
+    def __init__(self, mesh: Mesh, unseen=()):
         import pyvista as pv
         import trimesh
 
         self.mesh = mesh
+        self.unseen = _check_unseen(unseen)
         self.tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
         self.normals = np.asarray(self.tm.face_normals)
         self.poly = pv.PolyData(mesh.vertices, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
@@ -134,14 +138,36 @@ class _Surface:
         self.sample_normals = np.concatenate([np.asarray(self.tm.vertex_normals), self.normals])
         self.tree = cKDTree(self.samples)
 
+    def seen(self, p: np.ndarray) -> np.ndarray:
+        """Which points lie where the target was looked for (outside every ``unseen`` half-space)."""
+        ok = np.ones(len(p), bool)
+        for n, c in self.unseen:
+            ok &= p @ n <= c
+        return ok
+
     def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Closest points on the surface and their face ids."""
         cells, pts = self.poly.find_closest_cell(p, return_closest_point=True)
         return np.asarray(pts, dtype=float).reshape(-1, 3), np.asarray(cells, dtype=np.int64).reshape(-1)
 
 
-def _as_surface(m) -> _Surface:
-    return m if isinstance(m, _Surface) else _Surface(_check_mesh("target_mesh", m))
+def _check_unseen(unseen) -> list[tuple[np.ndarray, float]]:
+    out = []
+    for h in unseen or ():
+        try:
+            n, c = h
+            n, c = np.asarray(n, dtype=float).reshape(3), float(c)
+        except (TypeError, ValueError):
+            raise ValueError(f"an unseen half-space is (normal (3,), offset), got {h!r}") from None
+        if not (np.isfinite(n).all() and np.isfinite(c) and np.linalg.norm(n) > 1e-9):
+            raise ValueError(f"an unseen half-space needs a finite non-zero normal and offset, got {h!r}")
+        k = float(np.linalg.norm(n))
+        out.append((n / k, c / k))
+    return out
+
+
+def _as_surface(m, unseen=()) -> _Surface:
+    return m if isinstance(m, _Surface) else _Surface(_check_mesh("target_mesh", m), unseen)
 
 
 def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point: float,
@@ -212,9 +238,11 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
         d1, i1 = target.tree.query(moved)
         d2, i2 = cKDTree(moved).query(tgt)
         # both directions: source -> target alone lets a bigger target swallow the source, target -> source
-        # alone lets a partial target pull the whole source onto itself; far pairs are dropped (trimmed ICP)
-        k1 = d1 <= max(np.quantile(d1, trim), 1e-9)
-        k2 = d2 <= max(np.quantile(d2, trim), 1e-9)
+        # alone lets a partial target pull the whole source onto itself; far pairs are dropped (trimmed ICP),
+        # and pairs reaching where the target was not looked for (its end there is a cut, not the bone's)
+        v1, v2 = _seen_pairs(target, moved, target.samples[i1]), _seen_pairs(target, tgt, moved[i2])
+        k1 = v1 & (d1 <= max(np.quantile(d1[v1], trim), 1e-9))
+        k2 = v2 & (d2 <= max(np.quantile(d2[v2], trim), 1e-9))
         m = np.concatenate([moved[k1], moved[i2[k2]]])
         q = np.concatenate([target.samples[i1[k1]], tgt[k2]])
         n = np.concatenate([target.sample_normals[i1[k1]], tgt_n[k2]])
@@ -226,11 +254,22 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
         prev = err
     moved = _apply(T, source)
     res = np.linalg.norm(target.closest(moved)[0] - moved, axis=1)
+    if target.unseen:
+        seen = target.seen(moved)
+        res = res[seen] if seen.sum() >= 10 else res
     return T, res
 
 
+def _seen_pairs(target: _Surface, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairs with both ends where the target was looked for (all of them if that leaves fewer than 10)."""
+    if not target.unseen:
+        return np.ones(len(a), bool)
+    ok = target.seen(a) & target.seen(b)
+    return ok if ok.sum() >= 10 else np.ones(len(a), bool)
+
+
 def rigid_icp(source_points, target_mesh, init=None, *, iterations: int = 60, tol_mm: float = 1e-3,
-              trim: float = 0.9, rotation_prior: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+              trim: float = 0.9, rotation_prior: float = 0.0, unseen=()) -> tuple[np.ndarray, np.ndarray]:
     """Rigid ICP of points onto a mesh, correspondences both ways, point-to-plane (Besl & McKay 1992;
     Chen & Medioni 1992).
 
@@ -257,13 +296,20 @@ def rigid_icp(source_points, target_mesh, init=None, *, iterations: int = 60, to
         back to ``init``'s. 0: none. A small value (1e-3) only decides what the
         surfaces leave free -- the spin of a thin, straight bone such as the
         fibula -- and leaves its swing to the surfaces.
+    unseen : sequence of (normal (3,), offset)
+        Half-spaces ``normal . p > offset`` of the target world where the
+        target was not looked for (a segmentation's search ended short of the
+        bone's end: its surface there is a cut). A pair with either point in
+        one does not count, so the source is neither pulled onto the cut nor
+        shrunk to it; what lies there is extrapolated.
 
     Returns
     -------
     T : ndarray (4, 4)
         ``source_to_target``, a rotation and translation.
-    residuals : ndarray (N,)
-        Distance (mm) of each moved source point to the target surface.
+    residuals : ndarray (N,) or (N_seen,)
+        Distance (mm) of each moved source point to the target surface (of the
+        points outside ``unseen`` only, when it is given).
 
     References
     ----------
@@ -273,11 +319,11 @@ def rigid_icp(source_points, target_mesh, init=None, *, iterations: int = 60, to
     src = _check_points("source_points", source_points)
     if rotation_prior < 0:
         raise ValueError(f"rotation_prior must be >= 0, got {rotation_prior}")
-    return _icp(src, _as_surface(target_mesh), init, "rigid", iterations, tol_mm, trim, rotation_prior)
+    return _icp(src, _as_surface(target_mesh, unseen), init, "rigid", iterations, tol_mm, trim, rotation_prior)
 
 
 def affine_icp(source_points, target_mesh, init=None, *, iterations: int = 60, tol_mm: float = 1e-3,
-               trim: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+               trim: float = 0.9, unseen=()) -> tuple[np.ndarray, np.ndarray]:
     """Affine ICP of points onto a mesh, correspondences both ways.
 
     Same parameters as :func:`rigid_icp`; start it from the rigid result (an
@@ -287,11 +333,11 @@ def affine_icp(source_points, target_mesh, init=None, *, iterations: int = 60, t
     -------
     T : ndarray (4, 4)
         ``source_to_target``, a general affine map.
-    residuals : ndarray (N,)
+    residuals : ndarray (N,) or (N_seen,)
         Distance (mm) of each moved source point to the target surface.
     """
     src = _check_points("source_points", source_points)
-    return _icp(src, _as_surface(target_mesh), init, "affine", iterations, tol_mm, trim)
+    return _icp(src, _as_surface(target_mesh, unseen), init, "affine", iterations, tol_mm, trim)
 
 
 # --------------------------------------------------------------------------- #
@@ -342,6 +388,7 @@ def _correspondences(moving: Mesh, target: _Surface, n: int, max_angle_deg: floa
     n_src = ms.normals[faces]
     n_dst = np.concatenate([target.normals[c_m], target.normals[np.asarray(f_t, dtype=np.int64)]])
     keep = (n_src * n_dst).sum(1) >= np.cos(np.deg2rad(max_angle_deg))
+    keep &= _seen_pairs(target, src, dst)
     d = np.linalg.norm(dst - src, axis=1)
     if keep.any():
         med = np.median(d[keep])
@@ -357,7 +404,7 @@ def _correspondences(moving: Mesh, target: _Surface, n: int, max_angle_deg: floa
 
 
 def feature_points(template_mesh: Mesh, target_mesh: Mesh, n: int = 1000, *, max_angle_deg: float = 60.0,
-                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                   seed: int = 0, unseen=()) -> tuple[np.ndarray, np.ndarray]:
     """Corresponding surface points of two roughly aligned meshes (the warp's feature points).
 
     Call it after ICP: both meshes in the same frame (the target's, e.g. LPS).
@@ -380,6 +427,9 @@ def feature_points(template_mesh: Mesh, target_mesh: Mesh, n: int = 1000, *, max
         Normal agreement for a pair to count.
     seed : int
         Seed of the even surface sampling (deterministic).
+    unseen : sequence of (normal (3,), offset)
+        Half-spaces where the target was not looked for (see :func:`rigid_icp`):
+        no pair has a point there.
 
     Returns
     -------
@@ -389,7 +439,7 @@ def feature_points(template_mesh: Mesh, target_mesh: Mesh, n: int = 1000, *, max
     _check_mesh("template_mesh", template_mesh)
     if int(n) < 8:
         raise ValueError(f"n must be at least 8 feature points, got {n}")
-    _, _, dst = _corr = _correspondences(template_mesh, _as_surface(target_mesh), n, max_angle_deg, seed)
+    _, _, dst = _corr = _correspondences(template_mesh, _as_surface(target_mesh, unseen), n, max_angle_deg, seed)
     faces, bary, _ = _corr
     tri = template_mesh.vertices[template_mesh.faces[faces]]
     src = np.einsum("nk,nkd->nd", bary, tri)
@@ -653,7 +703,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0,
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
-                  rigid_bodies=None, fixed=None) -> tuple[Skeleton, dict[str, Any]]:
+                  rigid_bodies=None, fixed=None, unseen=None) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -747,6 +797,13 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         result (a template in another pose than the targets), or from
         ``init`` itself for every bone (a template already placed bone by
         bone near the targets, as build-subject does).
+    unseen : dict of str -> sequence of (normal (3,), offset), optional
+        Per bone, half-spaces of the target world where its target was not
+        looked for (``normal . p > offset``): a slice-wise search that ended
+        short of the bone's end leaves a cut there, which the ICPs and the
+        feature points must not take for the bone's end (it would shrink the
+        bone to it); the template's part beyond is extrapolated by the
+        affine and the RBF (see :func:`rigid_icp`).
 
     Returns
     -------
@@ -757,7 +814,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         ``n_features``, ``residual_mean_mm``/``residual_max_mm`` (at the feature
         points), ``min_jacobian_det`` (over the bone's vertices),
         ``affine_residual_mean_mm`` (template after the affine ICP to target),
-        ``kernel_width_mm``, ``flags``; ``transforms``: per bone the affine
+        ``kernel_width_mm``, ``flags``, ``unseen`` (the half-spaces given, as
+        normal and offset); ``transforms``: per bone the affine
         ``T_affine`` (template world -> target world, the affine-only
         baseline); ``seconds``.
 
@@ -784,6 +842,10 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     if init.shape != (4, 4):
         raise ValueError(f"init must be a 4x4 transform, got {init.shape}")
 
+    cuts = {n: _check_unseen(h) for n, h in (unseen or {}).items()}
+    unknown = sorted(set(cuts) - set(targets))
+    if unknown:
+        raise ValueError(f"unseen names bones without a target: {unknown}")
     results: dict[str, dict[str, Any]] = {}
     rejected: dict[str, str] = {}
     rigid_of: dict[str, np.ndarray] = {}
@@ -797,7 +859,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
         # checks them all
         check = check[::2]
-        return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name]), start, n_features,
+        return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], cuts.get(name, ())), start,
+                         n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
                          check)
 
@@ -1020,6 +1083,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 "kernel_width_mm": w.kernel_width_mm if w is not None else None,
                 "flags": r["flags"],
             }
+            if cuts.get(name):
+                report_bones[name]["unseen"] = [[*np.round(n, 4).tolist(), round(c, 2)] for n, c in cuts[name]]
         else:
             report_bones[name] = {"source": ("fixed (given)" if name in fixed else
                                              "placed template (neighbours' joints out of bounds)"
