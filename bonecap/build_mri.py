@@ -1014,6 +1014,9 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             return [b for b, group in bones_of.items() if b in sk.bones and any(
                 subject.markers[n].bone in group and subject.markers[n].source != "capsule" for n in snames)]
 
+        def shanks_unmeasured():
+            return unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
+
         def chain(solved):
             if guessed:
                 solved = neutral_twist(sk, solved, tuple(guessed))
@@ -1027,7 +1030,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             return local, pose_to_static(sk, bones, local, lab)
 
         local, solved = solve_static()
-        guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
+        guessed = shanks_unmeasured()
         poses = chain(solved)
         # A capsule binds its marker to the bone as the bone lies in the MRI: right where the scan measured
         # the bone, a guess where it did not (hands and feet carried at the template's wrist and ankle
@@ -1045,7 +1048,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
                         subject.markers[n] = MarkerBinding(n, b, landmark_local[n], "placed")
                         caps_in_static.discard(n)
                 local, solved = solve_static()
-                guessed = unmeasured({t: (t, t.replace("tibia", "fibula")) for t in ("tibia_r", "tibia_l")})
+                guessed = shanks_unmeasured()
                 poses = chain(solved)
         report["static_knee_twist_from_mri"] = guessed
 

@@ -254,10 +254,7 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
         prev = err
     moved = _apply(T, source)
     res = np.linalg.norm(target.closest(moved)[0] - moved, axis=1)
-    if target.unseen:
-        seen = target.seen(moved)
-        res = res[seen] if seen.sum() >= 10 else res
-    return T, res
+    return T, res[_seen_pairs(target, moved, moved)]
 
 
 def _seen_pairs(target: _Surface, a: np.ndarray, b: np.ndarray) -> np.ndarray:
