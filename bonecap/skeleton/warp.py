@@ -167,7 +167,11 @@ def _check_unseen(unseen) -> list[tuple[np.ndarray, float]]:
 
 
 def _as_surface(m, unseen=()) -> _Surface:
-    return m if isinstance(m, _Surface) else _Surface(_check_mesh("target_mesh", m), unseen)
+    if isinstance(m, _Surface):
+        if unseen:
+            raise ValueError("give unseen half-spaces with a mesh, not with a prepared surface (it has its own)")
+        return m
+    return _Surface(_check_mesh("target_mesh", m), unseen)
 
 
 def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point: float,
@@ -232,6 +236,7 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
     if len(sel) > 3000:  # a subset is enough for the target -> source direction
         sel = sel[np.linspace(0, len(sel) - 1, 3000).astype(int)]
     tgt, tgt_n = target.samples[sel], target.sample_normals[sel]
+    samples_seen = target.seen(target.samples)     # the target's samples do not move: once
     prev = np.inf
     for _ in range(int(iterations)):
         moved = _apply(T, source)
@@ -240,7 +245,9 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
         # both directions: source -> target alone lets a bigger target swallow the source, target -> source
         # alone lets a partial target pull the whole source onto itself; far pairs are dropped (trimmed ICP),
         # and pairs reaching where the target was not looked for (its end there is a cut, not the bone's)
-        v1, v2 = _seen_pairs(target, moved, target.samples[i1]), _seen_pairs(target, tgt, moved[i2])
+        moved_seen = target.seen(moved)
+        v1 = _enough(moved_seen & samples_seen[i1])
+        v2 = _enough(samples_seen[sel] & moved_seen[i2])
         k1 = v1 & (d1 <= max(np.quantile(d1[v1], trim), 1e-9))
         k2 = v2 & (d2 <= max(np.quantile(d2[v2], trim), 1e-9))
         m = np.concatenate([moved[k1], moved[i2[k2]]])
@@ -257,12 +264,16 @@ def _icp(source: np.ndarray, target: _Surface, init: np.ndarray, kind: str, iter
     return T, res[_seen_pairs(target, moved, moved)]
 
 
+def _enough(ok: np.ndarray) -> np.ndarray:
+    """The pairs ``ok`` keeps, or all of them if that leaves fewer than 10."""
+    return ok if ok.sum() >= 10 else np.ones(len(ok), bool)
+
+
 def _seen_pairs(target: _Surface, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pairs with both ends where the target was looked for (all of them if that leaves fewer than 10)."""
     if not target.unseen:
         return np.ones(len(a), bool)
-    ok = target.seen(a) & target.seen(b)
-    return ok if ok.sum() >= 10 else np.ones(len(a), bool)
+    return _enough(target.seen(a) & target.seen(b))
 
 
 def rigid_icp(source_points, target_mesh, init=None, *, iterations: int = 60, tol_mm: float = 1e-3,
