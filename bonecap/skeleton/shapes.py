@@ -566,13 +566,17 @@ class ShapeBuilder:
         centres = origin + v * (B * np.stack([c.ravel() for c in cidx], axis=1) + 0.5 * (B - 1))
         Fc = self.evaluate(centres, band).reshape(tuple(nb))
         active = (Fc < tol) & (Fc > -(depth + tol))
-        F = np.repeat(np.repeat(np.repeat(Fc, B, 0), B, 1), B, 2).astype(np.float32)
+        # every fine voxel starts at its block's coarse value: written through a (nb, B) x 3 view,
+        # one grid and no temporaries (a chain of np.repeat made three, the largest twice the grid)
+        F = np.empty(tuple(shape), dtype=np.float32)
+        F.reshape(nb[0], B, nb[1], B, nb[2], B)[...] = Fc[:, None, :, None, :, None]
         act = np.argwhere(active)
         if len(act):
             off = np.stack(np.meshgrid(np.arange(B), np.arange(B), np.arange(B), indexing="ij"), -1).reshape(-1, 3)
             # in chunks of blocks: every point's value depends on that point alone, and the
-            # primitives' float64 temporaries (~10 arrays of the chunk) stay at a few tens of MB
-            chunk = max(1, 262_144 // len(off))
+            # primitives' float64 temporaries (~10 arrays of the chunk) stay at about 15 MB
+            # (262 144 points a chunk held ~60 MB in each meshing worker, for no speed)
+            chunk = max(1, 65_536 // len(off))
             for a0 in range(0, len(act), chunk):
                 ac = act[a0:a0 + chunk]
                 idx = ac[:, None, :] * B + off[None, :, :]          # (nA, B^3, 3)
@@ -604,11 +608,15 @@ def _marching_cubes(values: np.ndarray, level: float, origin, voxel):
     ``level`` so every surface is closed. Returns ``(verts, faces)`` or None.
     """
     top = max(float(values.max()), level + 1.0)
-    pad = np.pad(values, 1, mode="constant", constant_values=top).astype(np.float32)
+    # Fortran order: VTK's image data runs x fastest, so the padded grid goes to VTK without
+    # a reordered copy and without a deep copy (two grids fewer at the peak of a worker)
+    pad = np.full(tuple(np.asarray(values.shape) + 2), np.float32(top), dtype=np.float32, order="F")
+    pad[1:-1, 1:-1, 1:-1] = values
     # grid values (almost) at the level make (nearly) coincident vertices that later merge
     # into non-manifold edges: push them 1e-3 mm off the level
     near = np.abs(pad - np.float32(level)) < np.float32(1e-3)
     pad[near] = np.float32(level) + np.where(pad[near] >= level, np.float32(1e-3), np.float32(-1e-3))
+    del near
     if pad.min() >= level:
         return None
     org = np.asarray(origin, float) - voxel
@@ -621,7 +629,8 @@ def _marching_cubes(values: np.ndarray, level: float, origin, voxel):
         img.SetDimensions(*pad.shape)
         img.SetSpacing(voxel, voxel, voxel)
         img.SetOrigin(*org)
-        arr = ns.numpy_to_vtk(np.ascontiguousarray(pad.ravel(order="F"), dtype=np.float32), deep=True)
+        # a view of ``pad`` (alive until this function returns, after the filter has run)
+        arr = ns.numpy_to_vtk(pad.ravel(order="K"), deep=False)
         img.GetPointData().SetScalars(arr)
         fe = vtkFlyingEdges3D()
         fe.SetInputData(img)
