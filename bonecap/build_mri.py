@@ -314,8 +314,21 @@ def shaft_line(vertices: np.ndarray, start: np.ndarray, end: np.ndarray,
     return out
 
 
+#: How far past its search a long bone whose line ends short of its joint may be followed
+#: (:func:`bone_seeds`' ``followed``), as a fraction of its joint-to-joint length: twice the 5-8 %
+#: by which a segment's length varies beyond stature, the template's placement error on top.
+FOLLOW_FRACTION = 0.15
+
+#: The long bones whose distal ends are followed past their search (:func:`bone_seeds`' ``followed``):
+#: the distal tibia widens to its plafond and the talus's dome under it is smaller, which stops the
+#: track (:func:`bonecap.segmentation.bones._follow_distal_end`), and the fibula's malleolus ends beside
+#: the talus. Not the radius and ulna: the carpals past them are as large as their distal sections,
+#: and a phantom's ulna, followed, took twice the carpal voxels it had taken before (seed 1: 110 -> 222).
+FOLLOWED_ENDS = ("tibia", "fibula")
+
+
 def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES,
-               margin_mm: float = 20.0) -> dict[str, np.ndarray]:
+               margin_mm: float = 20.0, followed: dict[str, float] | None = None) -> dict[str, np.ndarray]:
     """Seed polylines (LPS mm) of the bones to segment, from the aligned template.
 
     A long bone's seed runs from its proximal to its distal joint centre
@@ -342,6 +355,15 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     lateral malleolus ends 40 mm past the distal tibiofibular joint -- has
     its line carried on along it to half the margin short of its end (its
     last 20 mm were not searched: a phantom's malleoli were lost).
+
+    The lines end where the *template's* bones do; a subject whose bone is
+    longer (segment lengths vary by 5-8 % beyond stature) loses its end to the
+    search: a phantom's distal tibiae, 40 mm of metaphysis up to the plafond,
+    and its fibulae's malleoli. ``followed``, when given, receives the bones of
+    :data:`FOLLOWED_ENDS` with how far (mm, :data:`FOLLOW_FRACTION` of the
+    bone's length) ``segment_bones`` may follow them past the search, slice
+    by slice, while they continue and until they reach their joint
+    (:func:`bonecap.segmentation.bones._follow_distal_end`).
     """
     from bonecap.skeleton.kinematics import joint_groups
 
@@ -382,6 +404,9 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                 own = float(((V - pts[1]) @ u).max())
                 if own > margin_mm:
                     pts[1] = pts[1] + (own - 0.5 * margin_mm) * u
+            if followed is not None and name[:-2] in FOLLOWED_ENDS:
+                followed[name] = FOLLOW_FRACTION * float(np.linalg.norm(
+                    b.landmark_in_world(list(b.joint_centres)[far]) - b.landmark_in_world(list(b.joint_centres)[0])))
             if V is not None:
                 pts = shaft_line(V, pts[0], pts[1])
         if not pts:
@@ -625,7 +650,9 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
                                 "be placed from the body's extent: give --seeds SEEDS.yaml (bone -> LPS points)",
                                 mri[0])
             posed, align_report = place_template(template, vols, bodies, top, bottom, centre_at)
-            seed_map = bone_seeds(posed, np.eye(4))
+            follow: dict[str, float] = {}
+            seed_map = bone_seeds(posed, np.eye(4), followed=follow)
+            seg_settings["follow_mm"] = follow
         lap("seeds")
         bar.update()
 

@@ -602,3 +602,95 @@ def test_section_continuity_on_its_box_equals_the_whole_slice():
         assert bones._continues(cur, prev, fp, grow, ov) == want
         seen.add(want)
     assert seen == {True, False}
+
+
+def _flared_bone_stack(K: int = 30, fat: bool = False, seed: int = 5):
+    """A tibia-like bone from slice K-1 down to slice 8 in an axial stack of 5 mm slices, 1 mm pixels.
+
+    Shaft (outer 8 px, marrow 5 px) down to slice 16, then an epiphysis widening to outer 14 px
+    at slice 8 (the plafond); a talus-like bone (outer 9 px) right below it, slices 2-7. With
+    ``fat``, the body has a subcutaneous fat layer (1400) that the epiphysis touches on one
+    side with no cortex there (the distal tibia's subcutaneous face, its cortex too thin to show).
+    Returns the Volume, the body mask and the true per-slice areas of the bone.
+    """
+    n = 120
+    rng = np.random.default_rng(seed)
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    body = np.hypot(ii - 60, jj - 60) < 54
+    data = np.full((n, n, K), 300.0)
+    data[~body] = 0.0
+    if fat:
+        data[body & (np.hypot(ii - 60, jj - 60) >= 46)] = 1400.0
+    ci = 60.0 + (35.0 if fat else 0.0)        # with fat: the epiphysis runs into the layer
+    outer = {k: 8.0 for k in range(16, K)}
+    outer.update({k: 14.0 - 0.75 * (k - 8) for k in range(8, 16)})
+    true_area = np.zeros(K)
+    for k, ro in outer.items():
+        r = np.hypot(ii - ci, jj - 60)
+        bone = body & (r < ro)
+        sl = data[:, :, k]
+        sl[bone] = 80.0
+        sl[body & (r < ro - 3.0)] = 900.0
+        if fat:
+            sl[bone & (ii > ci) & (np.hypot(ii - 60, jj - 60) >= 44)] = 900.0    # no cortex against the fat
+        true_area[k] = bone.sum()
+    r = np.hypot(ii - ci, jj - 60)
+    for k in range(2, 8):
+        data[:, :, k][r < 9.0] = 80.0
+        data[:, :, k][r < 6.0] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 5.0, 1.0]))
+    return vol, np.repeat(body[:, :, None], K, axis=2), true_area, ci
+
+
+@pytest.mark.parametrize("fat", [False, True])
+def test_a_long_bone_cut_by_its_search_is_followed_to_its_joint(fat):
+    """The line ends at slice 20 (its template shorter than the bone): searched 10 mm past it, the
+    bone is cut at slice 18. Followed, it is labelled down to its plafond (slice 8) with its true
+    sections, and not into the smaller bone lying right under it (the talus, 0.41 of the plafond's
+    section). With a fat layer the epiphysis touches without cortex, the whole-slice rule drops
+    that marrow with the fat; tracked from the section above, it is kept. A track that runs to its
+    limit without reaching the joint followed something else past the bone (the carpals past an
+    ulna): it is dropped."""
+    from bonecap.segmentation.bones import segment_bones
+
+    K = 30
+    vol, body, true_area, ci = _flared_bone_stack(K, fat=fat)
+    seeds = {"tibia_r": np.array([[ci, 60.0, (K - 1) * 5.0], [ci, 60.0, 20 * 5.0]])}
+    cut, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=10.0)
+    a_cut = (cut == ids["tibia_r"]).sum(axis=(0, 1))
+    assert a_cut[18:].min() > 0 and a_cut[:18].sum() == 0
+    got, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=10.0,
+                             follow_mm={"tibia_r": 60.0})
+    area = (got == ids["tibia_r"]).sum(axis=(0, 1))
+    assert np.array_equal(area[18:], a_cut[18:])                 # what the search found is unchanged
+    assert area[:8].sum() == 0                                   # the talus is not the tibia's
+    assert np.all(np.abs(area[8:18] - true_area[8:18]) <= 0.12 * true_area[8:18]), (area[8:18], true_area[8:18])
+    if fat:
+        # the whole-slice rule on such a slice: the marrow goes with the fat
+        one, ids1 = segment_bones(vol, {"tibia_r": np.array([[ci, 60.0, 50.0], [ci, 60.0, 40.0]])}, body_mask=body,
+                                  progress=False, margin_mm=0.0)
+        assert (one == ids1["tibia_r"]).sum(axis=(0, 1))[8:11].sum() < 0.3 * true_area[8:11].sum()
+    # a track that runs to its limit (12 mm here) without reaching a joint is not the bone's end: dropped whole
+    short, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=10.0,
+                               follow_mm={"tibia_r": 12.0})
+    assert np.array_equal(short, cut)
+
+
+def test_only_the_ankles_long_bones_are_followed_past_their_search():
+    """bone_seeds names the tibiae and fibulae (their ends at the ankle, where the talus's smaller
+    section stops the track) with 15 % of their joint-to-joint length; not the radius and ulna (the
+    carpals past them are as large as their ends), nor the femur and humerus (a long bone's line
+    goes on past their distal joints)."""
+    from bonecap.build_mri import FOLLOW_FRACTION, bone_seeds
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+    followed: dict[str, float] = {}
+    seeds = bone_seeds(sk, np.eye(4), followed=followed)
+    assert set(followed) == {"tibia_r", "tibia_l", "fibula_r", "fibula_l"}
+    tib = sk.bones["tibia_r"]
+    length = np.linalg.norm(tib.landmark_in_world("ankle") - tib.landmark_in_world("knee"))
+    assert followed["tibia_r"] == pytest.approx(FOLLOW_FRACTION * length)
+    # the lines themselves do not depend on it
+    assert all(np.array_equal(seeds[n], v) for n, v in bone_seeds(sk, np.eye(4)).items())

@@ -500,7 +500,8 @@ def _seed_distance(mask: np.ndarray, seed: np.ndarray) -> float:
 def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask: np.ndarray | None = None,
                   rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
                   options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
-                  joint_zone_mm: float = 60.0, continuity: bool = True) -> tuple[np.ndarray, dict[str, int]]:
+                  joint_zone_mm: float = 60.0, continuity: bool = True,
+                  follow_mm: Mapping[str, float] | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -548,6 +549,12 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         is registered as a whole afterwards, where every section helps (the
         forearm stacks: in a pronated forearm the ulna's chain breaks where its
         seed took the radius).
+    follow_mm : dict bone name -> float, optional
+        Long bones whose distal end is followed past the search, slice by
+        slice, up to this far (mm), where it goes on: a polyline from a
+        template ends where the template's bone does (the tibia's, short of
+        the talus), and a bone longer than its template would be cut there.
+        See :func:`_follow_distal_end`.
     joint_zone_mm : float
         Two long bones whose polylines share an end point (a joint centre:
         femur and tibia at the knee) are split at the deepest valley of their summed
@@ -667,6 +674,17 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
     long_bones = [n for n in names if rule_of[n] == "cortical"]
+    for n, reach in (follow_mm or {}).items():
+        if n not in ids or rule_of[n] != "cortical" or not reach > 0:
+            continue
+        kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
+        searched = np.flatnonzero([len(s) > 0 for s in per_slice[n]])
+        if searched.size == 0:
+            continue
+        step = 1 if kk[-1] >= kk[0] else -1
+        last = int(searched.max() if step > 0 else searched.min())
+        _follow_distal_end(labels, ids[n], n, last, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
+                           interior, pixel_mm, opts)
     crossed = {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}
     track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
                     opts=opts, crossed=crossed)
@@ -674,6 +692,109 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     if continuity:
         _keep_continuous(labels, ids, crossed, pixel_mm)
     return labels, ids
+
+
+def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step: int, max_slices: int,
+                       data: np.ndarray, smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray,
+                       pixel_mm: float, opts: Mapping, *, grow: float = 1.6,
+                       min_overlap: float = 0.5, reach_mm: float = 3.0, window_mm: float = 2.0,
+                       joint_drop: float = 0.6, marrow_top: float = 1.25) -> int:
+    """Follow a long bone past the last slice its search reached (in place); the number of slices added.
+
+    Only when the bone is labelled on that slice (it goes on past the search).
+    Each next slice's section is tracked from the previous one: its marrow is
+    the largest piece of the slice's marrow candidates within ``window_mm`` of
+    the previous section, its contour the cortical rule's around that marrow
+    (:func:`_section_from_marrow`, kept within three windows of the previous
+    section), on pixels no other bone holds; it is kept while it continues the previous one (:func:`_continues`: one lies on
+    the other, ``min_overlap`` within ``reach_mm``, at most ``grow`` times
+    larger) and is at least ``joint_drop`` of the largest of the bone's last
+    four sections. The second condition is the joint: a long bone's end
+    widens into its epiphysis up to the joint line (the distal tibia to its
+    plafond, ~2.5 times its shaft's section on the phantoms), and the bone
+    across the joint (the talus's dome in the mortise) shows in the next
+    slices as a smaller section lying on it -- continuity alone would follow
+    into it (as :func:`_keep_continuous` explains). The track is kept only
+    when it ended so, at a joint (or at the images' end): one that ran to
+    ``max_slices`` or lost the marrow on the way followed something past the
+    bone's end, and nothing of it is labelled. What lies past the stop
+    (the malleolus beside the talus) stays unlabelled: the warp extrapolates
+    it (:func:`bonecap.build_mri.unseen_ends`).
+
+    The marrow is kept to the marrow's own brightness (``marrow_top`` times the
+    90th percentile of the previous slice's marrow), and so is the section:
+    where marrow touches fat that is brighter (T2; the phantom's distal tibia,
+    subcutaneous on its medial face), the track would otherwise widen into the
+    fat by a window each slice.
+    """
+    from skimage.morphology import disk
+
+    K = labels.shape[2]
+    prev = labels[:, :, last] == lid
+    if not prev.any():
+        return 0
+    sums = (labels == lid).sum(axis=(0, 1))
+    towards_end = sums[:last + 1] if step > 0 else sums[last:][::-1]
+    areas = [int(a) for a in towards_end if a > 0][-4:]
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
+    o = opts[name]
+    m0 = cortical.muscle_level(smooth[:, :, last], interior[:, :, last])
+    top = _marrow_top(smooth[:, :, last], prev & (smooth[:, :, last] > o.get("marrow_over_muscle", 1.2) * m0),
+                      marrow_top) if np.isfinite(m0) else np.inf
+    added_at: list[tuple[int, np.ndarray]] = []
+    at_joint = False
+    k = last + step
+    while 0 <= k < K and len(added_at) < max_slices:
+        med, body, inner = smooth[:, :, k], body_mask[:, :, k], interior[:, :, k]
+        m_slice = cortical.muscle_level(med, inner)
+        if not np.isfinite(m_slice) or m_slice <= 0:
+            break
+        # the marrow lying on the previous section: the candidates within a few mm of it, so that where
+        # the cortex is too thin to show (the distal tibia's subcutaneous face) the marrow is not lost
+        # to the fat it touches (the whole-slice rule drops such a region with the fat)
+        win = ndimage.binary_dilation(prev, win_fp) & (labels[:, :, k] == 0)
+        cand = _marrow_candidates(med, body, pixel_mm, m_slice, o) & win
+        if np.isfinite(top):
+            # no brighter than the marrow above: where the marrow touches fat that is brighter (T2, or fat
+            # suppression's failure), the track would otherwise widen into the fat by a window a slice
+            cand &= med <= top
+        lab, nl = ndimage.label(cand, structure=np.ones((3, 3), bool))
+        if nl == 0:
+            break
+        region = lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:]))
+        if region.sum() * pixel_mm ** 2 < o.get("min_marrow_mm2", 6.0):
+            break
+        # the section's own edge (the cortical contour around that marrow), within three windows
+        sec = density.fill_holes(_section_from_marrow(data[:, :, k], med, body, inner, pixel_mm, region, m_slice, o))
+        sec &= ndimage.binary_dilation(prev, win_fp, iterations=3) & (labels[:, :, k] == 0)
+        if np.isfinite(top):
+            sec &= med <= top          # nor the contour: with no cortex against the fat it runs on into it
+        n = int(sec.sum())
+        if n == 0 or not _continues(sec, prev, fp, grow, min_overlap):
+            break
+        if n < joint_drop * max(areas[-4:]):
+            at_joint = True
+            break
+        added_at.append((k, sec))
+        areas.append(n)
+        prev = sec
+        top = _marrow_top(smooth[:, :, k], region, marrow_top)
+        k += step
+    # A bone's end is its joint: the track stands only where it ended at one (or at the images' end). One
+    # that ran to its limit, or lost the bone's marrow on the way, followed something else beyond the
+    # bone's end (past the distal ulna the carpals, larger than its head, continue it slice after slice).
+    if added_at and not (at_joint or not 0 <= k < K):
+        return 0
+    for kk, sec in added_at:
+        labels[:, :, kk][sec] = lid
+    return len(added_at)
+
+
+def _marrow_top(med: np.ndarray, marrow: np.ndarray, factor: float) -> float:
+    """``factor`` x the 90th percentile of a marrow region's intensities (inf for an empty region)."""
+    vals = med[marrow]
+    return float(factor * np.percentile(vals, 90)) if vals.size >= 5 else np.inf
 
 
 def marrow_sections(volume: Volume, where: np.ndarray, *, body_mask: np.ndarray | None = None,
