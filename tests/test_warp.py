@@ -460,3 +460,40 @@ def test_a_target_cut_short_is_not_taken_for_the_bone_end():
         warp_skeleton(template, targets, init=rough, unseen={"nosuchbone": [(axis, 0.0)]})
     with pytest.raises(ValueError, match="half-space"):
         warp_skeleton(template, targets, init=rough, unseen={"lower": [((0.0, 0.0, 0.0), 1.0)]})
+
+
+
+def _flared_shaft() -> trimesh.Trimesh:
+    """A long bone of revolution along z: a shaft of radius 8 mm, 240 mm long, flaring to 14 mm over its
+    last 40 mm at the -z end (a distal radius or tibia), rounded caps."""
+    z = np.linspace(-120.0, 120.0, 97)
+    r = 8.0 + 6.0 * np.clip((-80.0 - z) / 35.0, 0, 1) ** 1.5
+    r = r * np.sqrt(np.clip(1 - ((np.abs(z) - 112.0).clip(0) / 8.0) ** 2, 0, 1))
+    prof = np.column_stack([r, z])
+    prof[0, 0] = prof[-1, 0] = 0.0
+    return trimesh.creation.revolve(prof, sections=48)
+
+
+def test_a_bone_placed_off_along_its_axis_slides_back():
+    """The subject's bone 8 % longer than the template's, their proximal ends together: the template's
+    flared end lies 18 mm short of the target's. Along a shaft only the ends hold the slide, and their
+    pairs are the farthest: a trimmed rigid ICP (the nearest 90 % of the pairs each way) drops them and
+    does not move (the affine ICP after it then leaves the end 18 mm short); keeping every pair, the
+    rigid fit centres the bone and the affine stretches it onto the target. The warp's rigid stage keeps
+    every pair: its personal bone ends within 3 mm of the target's end."""
+    m = _flared_shaft()
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    tV = V * [1.0, 1.0, 1.08]
+    tV[:, 2] += V[:, 2].max() - tV[:, 2].max()
+    target = Mesh(tV, F, "lps")
+    tip0, tip_true = np.array([0.0, 0.0, V[:, 2].min()]), np.array([0.0, 0.0, tV[:, 2].min()])
+    err = {}
+    for trim in (0.9, 1.0):
+        T_r, _ = rigid_icp(V, target, np.eye(4), trim=trim)
+        T_a, _ = affine_icp(V, target, T_r)
+        err[trim] = np.linalg.norm(_apply_map(T_a, tip0) - tip_true)
+    assert err[0.9] > 12.0 and err[1.0] < 4.0, err
+    sk = Skeleton({"bone": Bone("bone", None, Mesh(V, F, "bone"), np.eye(4), joint_centres={"top": [0, 0, 120.0]},
+                                landmarks={"tip": tip0})}, world="model")
+    personal, _ = warp_skeleton(sk, {"bone": target}, init=np.eye(4))
+    assert np.linalg.norm(personal.bones["bone"].landmark_in_world("tip") - tip_true) < 3.0
