@@ -706,10 +706,10 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     the largest piece of the slice's marrow candidates within ``window_mm`` of
     the previous section, its contour the cortical rule's around that marrow
     (:func:`_section_from_marrow`, kept within three windows of the previous
-    section), on pixels no other bone holds; it is kept while it continues the previous one (:func:`_continues`: one lies on
-    the other, ``min_overlap`` within ``reach_mm``, at most ``grow`` times
-    larger) and is at least ``joint_drop`` of the largest of the bone's last
-    four sections. The second condition is the joint: a long bone's end
+    section), on pixels no other bone holds. It is kept while it continues
+    the previous one (:func:`_continues`: one lies on the other,
+    ``min_overlap`` within ``reach_mm``, at most ``grow`` times larger) and is
+    at least ``joint_drop`` of the largest of the bone's last four sections. The second condition is the joint: a long bone's end
     widens into its epiphysis up to the joint line (the distal tibia to its
     plafond, ~2.5 times its shaft's section on the phantoms), and the bone
     across the joint (the talus's dome in the mortise) shows in the next
