@@ -685,6 +685,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         last = int(searched.max() if step > 0 else searched.min())
         _follow_distal_end(labels, ids[n], n, last, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
                            interior, pixel_mm, opts)
+    for n in long_bones:
+        _fill_single_gaps(labels, ids[n], n, [len(s) > 0 for s in per_slice[n]], data, smooth, body_mask, interior,
+                          pixel_mm, opts)
     crossed = {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}
     track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
                     opts=opts, crossed=crossed)
@@ -746,30 +749,10 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     at_joint = False
     k = last + step
     while 0 <= k < K and len(added_at) < max_slices:
-        med, body, inner = smooth[:, :, k], body_mask[:, :, k], interior[:, :, k]
-        m_slice = cortical.muscle_level(med, inner)
-        if not np.isfinite(m_slice) or m_slice <= 0:
+        got = _track_section(labels, k, prev, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
+        if got is None:
             break
-        # the marrow lying on the previous section: the candidates within a few mm of it, so that where
-        # the cortex is too thin to show (the distal tibia's subcutaneous face) the marrow is not lost
-        # to the fat it touches (the whole-slice rule drops such a region with the fat)
-        win = ndimage.binary_dilation(prev, win_fp) & (labels[:, :, k] == 0)
-        cand = _marrow_candidates(med, body, pixel_mm, m_slice, o) & win
-        if np.isfinite(top):
-            # no brighter than the marrow above: where the marrow touches fat that is brighter (T2, or fat
-            # suppression's failure), the track would otherwise widen into the fat by a window a slice
-            cand &= med <= top
-        lab, nl = ndimage.label(cand, structure=np.ones((3, 3), bool))
-        if nl == 0:
-            break
-        region = lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:]))
-        if region.sum() * pixel_mm ** 2 < o.get("min_marrow_mm2", 6.0):
-            break
-        # the section's own edge (the cortical contour around that marrow), within three windows
-        sec = density.fill_holes(_section_from_marrow(data[:, :, k], med, body, inner, pixel_mm, region, m_slice, o))
-        sec &= ndimage.binary_dilation(prev, win_fp, iterations=3) & (labels[:, :, k] == 0)
-        if np.isfinite(top):
-            sec &= med <= top          # nor the contour: with no cortex against the fat it runs on into it
+        sec, region = got
         n = int(sec.sum())
         if n == 0 or not _continues(sec, prev, fp, grow, min_overlap):
             break
@@ -789,6 +772,75 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     for kk, sec in added_at:
         labels[:, :, kk][sec] = lid
     return len(added_at)
+
+
+def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: list[bool], data: np.ndarray,
+                      smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
+                      *, grow: float = 1.6, min_overlap: float = 0.5, reach_mm: float = 3.0, window_mm: float = 2.0,
+                      marrow_top: float = 1.25) -> int:
+    """Fill a long bone's single missing slices between two of its sections (in place); how many.
+
+    A slice searched and left empty between two sections of the bone is where the whole-slice rule
+    lost the marrow (touching fat through a cortex too thin to show, or joined to a neighbour's
+    region). The section there is tracked from the slice before (:func:`_track_section`, as
+    :func:`_follow_distal_end` does) and kept only if it continues both neighbours
+    (:func:`_continues`).
+    """
+    from skimage.morphology import disk
+
+    K = labels.shape[2]
+    area = (labels == lid).sum(axis=(0, 1))
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
+    o = opts[name]
+    filled = 0
+    for k in range(1, K - 1):
+        if area[k] or not (area[k - 1] and area[k + 1]) or not searched[k]:
+            continue
+        prev, nxt = labels[:, :, k - 1] == lid, labels[:, :, k + 1] == lid
+        m0 = cortical.muscle_level(smooth[:, :, k - 1], interior[:, :, k - 1])
+        top = _marrow_top(smooth[:, :, k - 1], prev & (smooth[:, :, k - 1] > o.get("marrow_over_muscle", 1.2) * m0),
+                          marrow_top) if np.isfinite(m0) else np.inf
+        got = _track_section(labels, k, prev, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
+        if got is None:
+            continue
+        sec = got[0]
+        if sec.any() and _continues(sec, prev, fp, grow, min_overlap) and _continues(sec, nxt, fp, grow, min_overlap):
+            labels[:, :, k][sec] = lid
+            filled += 1
+    return filled
+
+
+def _track_section(labels: np.ndarray, k: int, prev: np.ndarray, top: float, data: np.ndarray, smooth: np.ndarray,
+                   body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, o: Mapping, win_fp: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A long bone's section on slice ``k`` tracked from its section ``prev`` on a neighbouring slice:
+    ``(section, marrow)``, or None where no marrow lies on it. See :func:`_follow_distal_end`."""
+    med, body, inner = smooth[:, :, k], body_mask[:, :, k], interior[:, :, k]
+    m_slice = cortical.muscle_level(med, inner)
+    if not np.isfinite(m_slice) or m_slice <= 0:
+        return None
+    # the marrow lying on the previous section: the candidates within a few mm of it, so that where
+    # the cortex is too thin to show (the distal tibia's subcutaneous face) the marrow is not lost
+    # to the fat it touches (the whole-slice rule drops such a region with the fat)
+    free = labels[:, :, k] == 0
+    cand = _marrow_candidates(med, body, pixel_mm, m_slice, o) & ndimage.binary_dilation(prev, win_fp) & free
+    if np.isfinite(top):
+        # no brighter than the marrow above: where the marrow touches fat that is brighter (T2, or fat
+        # suppression's failure), the track would otherwise widen into the fat by a window a slice
+        cand &= med <= top
+    lab, nl = ndimage.label(cand, structure=np.ones((3, 3), bool))
+    if nl == 0:
+        return None
+    region = lab == 1 + int(np.argmax(np.bincount(lab.ravel())[1:]))
+    if region.sum() * pixel_mm ** 2 < o.get("min_marrow_mm2", 6.0):
+        return None
+    # the section's own edge (the cortical contour around that marrow), within three windows
+    sec = density.fill_holes(_section_from_marrow(data[:, :, k], med, body, inner, pixel_mm, region, m_slice, o))
+    sec &= ndimage.binary_dilation(prev, win_fp, iterations=3) & free
+    if np.isfinite(top):
+        sec &= med <= top          # nor the contour: with no cortex against the fat it runs on into it
+    return sec, region
 
 
 def _marrow_top(med: np.ndarray, marrow: np.ndarray, factor: float) -> float:
