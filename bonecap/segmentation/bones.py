@@ -511,8 +511,10 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     others by the density-threshold rule (the slice's candidates computed
     once; candidate regions already taken by a long bone are not offered to
     them). Two bones claiming one pixel: the nearest seed wins. Holes are
-    filled per slice. Long bones meeting at a joint are split at the joint
-    space (see ``joint_zone_mm``).
+    filled per slice. A long bone's single searched slice left empty between
+    two of its sections is tracked from its neighbours
+    (:func:`_fill_single_gaps`). Long bones meeting at a joint are split at
+    the joint space (see ``joint_zone_mm``).
 
     Parameters
     ----------
