@@ -744,9 +744,7 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     fp = disk(max(1, int(round(reach_mm / pixel_mm))))
     win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
     o = opts[name]
-    m0 = cortical.muscle_level(smooth[:, :, last], interior[:, :, last])
-    top = _marrow_top(smooth[:, :, last], prev & (smooth[:, :, last] > o.get("marrow_over_muscle", 1.2) * m0),
-                      marrow_top) if np.isfinite(m0) else np.inf
+    top = _section_marrow_top(smooth, interior, last, prev, o, marrow_top)
     added_at: list[tuple[int, np.ndarray]] = []
     at_joint = False
     k = last + step
@@ -800,9 +798,7 @@ def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: list[bo
         if area[k] or not (area[k - 1] and area[k + 1]) or not searched[k]:
             continue
         prev, nxt = labels[:, :, k - 1] == lid, labels[:, :, k + 1] == lid
-        m0 = cortical.muscle_level(smooth[:, :, k - 1], interior[:, :, k - 1])
-        top = _marrow_top(smooth[:, :, k - 1], prev & (smooth[:, :, k - 1] > o.get("marrow_over_muscle", 1.2) * m0),
-                          marrow_top) if np.isfinite(m0) else np.inf
+        top = _section_marrow_top(smooth, interior, k - 1, prev, o, marrow_top)
         got = _track_section(labels, k, prev, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
         if got is None:
             continue
@@ -843,6 +839,15 @@ def _track_section(labels: np.ndarray, k: int, prev: np.ndarray, top: float, dat
     if np.isfinite(top):
         sec &= med <= top          # nor the contour: with no cortex against the fat it runs on into it
     return sec, region
+
+
+def _section_marrow_top(smooth: np.ndarray, interior: np.ndarray, k: int, section: np.ndarray, o: Mapping,
+                        factor: float) -> float:
+    """:func:`_marrow_top` of a labelled section's marrow (its pixels brighter than the rule's marrow level)."""
+    m0 = cortical.muscle_level(smooth[:, :, k], interior[:, :, k])
+    if not np.isfinite(m0):
+        return np.inf
+    return _marrow_top(smooth[:, :, k], section & (smooth[:, :, k] > o.get("marrow_over_muscle", 1.2) * m0), factor)
 
 
 def _marrow_top(med: np.ndarray, marrow: np.ndarray, factor: float) -> float:
