@@ -676,20 +676,18 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         for n, m in masks.items():
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
     long_bones = [n for n in names if rule_of[n] == "cortical"]
+    searched = {n: np.array([len(s) > 0 for s in per_slice[n]]) for n in long_bones}
     for n, reach in (follow_mm or {}).items():
-        if n not in ids or rule_of[n] != "cortical" or not reach > 0:
+        if n not in ids or rule_of[n] != "cortical" or not reach > 0 or not searched[n].any():
             continue
         kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
-        searched = np.flatnonzero([len(s) > 0 for s in per_slice[n]])
-        if searched.size == 0:
-            continue
         step = 1 if kk[-1] >= kk[0] else -1
-        last = int(searched.max() if step > 0 else searched.min())
+        where = np.flatnonzero(searched[n])
+        last = int(where.max() if step > 0 else where.min())
         _follow_distal_end(labels, ids[n], n, last, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
                            interior, pixel_mm, opts)
     for n in long_bones:
-        _fill_single_gaps(labels, ids[n], n, [len(s) > 0 for s in per_slice[n]], data, smooth, body_mask, interior,
-                          pixel_mm, opts)
+        _fill_single_gaps(labels, ids[n], n, searched[n], data, smooth, body_mask, interior, pixel_mm, opts)
     crossed = {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}
     track = partial(_track_joint, ids=ids, img=data, med=smooth, body=body_mask, inner=interior, pixel_mm=pixel_mm,
                     opts=opts, crossed=crossed)
@@ -714,9 +712,10 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     section), on pixels no other bone holds. It is kept while it continues
     the previous one (:func:`_continues`: one lies on the other,
     ``min_overlap`` within ``reach_mm``, at most ``grow`` times larger) and is
-    at least ``joint_drop`` of the largest of the bone's last four sections. The second condition is the joint: a long bone's end
-    widens into its epiphysis up to the joint line (the distal tibia to its
-    plafond, ~2.5 times its shaft's section on the phantoms), and the bone
+    at least ``joint_drop`` of the largest of the bone's last four sections.
+    The second condition is the joint: a long bone's end widens into its
+    epiphysis up to the joint line (the distal tibia to its plafond, ~2.5
+    times its shaft's section on the phantoms), and the bone
     across the joint (the talus's dome in the mortise) shows in the next
     slices as a smaller section lying on it -- continuity alone would follow
     into it (as :func:`_keep_continuous` explains). The track is kept only
@@ -774,7 +773,7 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     return len(added_at)
 
 
-def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: list[bool], data: np.ndarray,
+def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: np.ndarray, data: np.ndarray,
                       smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
                       *, grow: float = 1.6, min_overlap: float = 0.5, reach_mm: float = 3.0, window_mm: float = 2.0,
                       marrow_top: float = 1.25) -> int:
