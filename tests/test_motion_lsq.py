@@ -152,6 +152,25 @@ def test_gaps_interpolated_then_invalid():
     assert np.isnan(mo.residuals[55, ft]).all()
 
 
+def test_sweeps_until_converged():
+    # markers misplaced on the two-marker thigh and shank: the sweeps then settle slowly
+    skel, _, markers, rng = truth_motion(F=5, seed=1)
+    local = MARKER_LOCAL.copy()
+    local[4:8] += rng.normal(0, 6, (4, 3))
+    fixed = solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=300).transforms
+    six = solve_lsq(skel, MARKER_BONES, local, markers).transforms
+    tol = solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=3000, tol_mm=1e-4).transforms
+    # six sweeps had not settled; the tolerance ran on to where 300 sweeps are
+    assert np.abs(six - fixed).max() > 0.1
+    assert np.abs(tol - fixed).max() < 1e-2
+    # a loose tolerance stops after the first red-black sweep (the top-down one is always run)
+    assert np.array_equal(solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=50, tol_mm=1e3).transforms,
+                          solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=2).transforms)
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="tol_mm"):
+            solve_lsq(skel, MARKER_BONES, local, markers, tol_mm=bad)
+
+
 def test_input_checks():
     skel, _, markers, _ = truth_motion(F=5)
     with pytest.raises(ValueError, match="marker_local"):

@@ -585,7 +585,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
               joint_weight: float = DEFAULT_JOINT_WEIGHT, n_sweeps: int = 6, max_gap_frames: int = 10,
               forearm=None, marker_labels: Sequence[str] | None = None, rate_hz: float = 100.0,
               first_frame: int = 1, segments: Mapping[str, str] | None = None,
-              joints: Mapping[str, str] | None = None, progress: bool = False) -> Motion:
+              joints: Mapping[str, str] | None = None, progress: bool = False,
+              tol_mm: float | None = None) -> Motion:
     """Bone poses from markers by joint-coupled weighted least squares, all frames at once.
 
     Parameters
@@ -607,7 +608,14 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         Stiffness of every joint in marker equivalents (see the module
         documentation); 0 uncouples the segments (a per-segment rigid fit).
     n_sweeps : int, default 6
-        Block-coordinate sweeps (the first top-down, then red-black).
+        Block-coordinate sweeps (the first top-down, then red-black); with
+        ``tol_mm`` the most that are run.
+    tol_mm : float, optional
+        Stop the sweeps once a sweep moved no segment by more than this: the
+        largest change of a segment's origin or of a point 100 mm from it (its
+        rotation's), over all frames. For few frames, where a sweep costs
+        little and a full convergence matters (the static trial that binds the
+        markers, :func:`bonecap.build_subject.pose_to_static`).
     max_gap_frames : int, default 10
         Longest run of frames over which a segment that cannot be solved is
         interpolated (relative to its parent); longer runs are NaN and invalid.
@@ -657,6 +665,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         raise ValueError(f"joint_weight must be a finite number >= 0 (marker equivalents), got {joint_weight!r}")
     if int(n_sweeps) < 1:
         raise ValueError(f"n_sweeps must be >= 1, got {n_sweeps!r}")
+    if tol_mm is not None and not (np.isfinite(tol_mm) and tol_mm > 0):
+        raise ValueError(f"tol_mm must be a finite number > 0 (mm), got {tol_mm!r}")
     if int(max_gap_frames) < 0:
         raise ValueError(f"max_gap_frames must be >= 0, got {max_gap_frames!r}")
     F, M, _ = meas.shape
@@ -771,7 +781,11 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 slot += 1
 
         first = True
+        converged = False         # with tol_mm: the sweeps before (or after) the model step are done
         for k, step in steps:
+            if converged and step is None:
+                continue
+            converged = False
             if step == "model":
                 # An ulna its markers cannot hold (one styloid marker and the elbow, as in Plug-in
                 # Gait) takes the model's own ulna pose, carried by the four forearm markers' elbow frame.
@@ -806,6 +820,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 first = False
                 continue
             free_set = set(free)
+            before = Tb[free].copy() if tol_mm is not None else None
             # colour 0's batches come first in the list: reversed, colour 1 goes first
             for group, Pg, Qg, Wg in (batches if k % 2 == 0 else batches[::-1]):
                 todo = [i for i, s in enumerate(group) if s in free_set]
@@ -818,6 +833,11 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 for i in todo:
                     Tb[group[i]] = Tg[i]
                     okb[group[i]] = v[i]
+            if before is not None:
+                after = Tb[free]
+                d = np.abs(after[..., :3, :] - before[..., :3, :]) * np.array([100.0, 100.0, 100.0, 1.0])
+                converged = bool(np.nan_to_num(d, nan=0.0).max(initial=0.0) <= tol_mm
+                                 and (np.isnan(after) == np.isnan(before)).all())
 
         # A segment frame counts as solved only where its own visible markers and its proximal
         # joint (its parent solved there) make three points: pseudo-markers from its children
