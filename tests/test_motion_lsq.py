@@ -300,13 +300,18 @@ def test_hinge_elbow_holds_an_ulna_with_one_marker():
     off[3] += [0, 15, 0]
     mo = solve_lsq(skel, mb, off, meas, n_sweeps=30)
     assert np.median(rotation_angle_deg(mo.transforms[:, 1], T[:, 1])) < 4.0
-    # without hinges (a joint not named a hinge, or not declared with one coordinate): the
-    # one-marker ulna is not a segment of its own
+    # without hinges (a joint not named a hinge, or a template that declares its joints and this one
+    # with three coordinates): the one-marker ulna is not a segment of its own
     plain = arm_skeleton(elbow="cubital")
     assert plan_segments(plain, mb).segment_of["ulna_r"] == 0
+    ball = arm_skeleton()
+    ball.metadata["joints"]["elbow_r"] = {"type": "CustomJoint", "coordinates": ["ex", "ey", "ez"]}
+    assert plan_segments(ball, mb).segment_of["ulna_r"] == 0
+    # a template that declares no joints (the embedded skeleton) has its elbow a hinge
     undeclared = arm_skeleton()
     undeclared.metadata = {}
-    assert plan_segments(undeclared, mb).segment_of["ulna_r"] == 0
+    plan_u = plan_segments(undeclared, mb)
+    assert plan_u.roots() == ["humerus_r", "ulna_r", "radius_r"] and len(plan_u.segments[1].links()) == 3
     # an ulna its two markers hold keeps ball joints (no hinge at the elbow or the radio-ulnar joint)
     two = plan_segments(skel, mb[:4] + ["ulna_r"] + mb[4:])
     assert [len(seg.links()) for seg in two.segments] == [0, 1, 1]

@@ -15,8 +15,9 @@ proximal joints of its children), a soft ball joint: the two bones' copies of
 the joint centre are pulled together with a stiffness ``k`` counted in
 *marker equivalents* (``joint_weight``; a joint weighs as much as ``k``
 markers of weight 1). A hinge (:data:`~bonecap.skeleton.kinematics.HINGE_JOINTS`,
-the elbow, where the template declares it a one-axis joint and the bones
-give its axis, and only for a bone with fewer than two markers of its own
+the elbow, where the bones give its axis and the template does not declare it
+otherwise -- an OpenSim model's with one coordinate, the embedded skeleton's
+always -- and only for a bone with fewer than two markers of its own
 and its children) adds two more such pairs, the
 points ``HINGE_LEVER_MM`` either side of the centre on the axis: the child
 then keeps the axis and only flexes about it, and one marker off the axis
@@ -190,8 +191,9 @@ def _shared_joint(skeleton: Skeleton, bone: str, joints: Mapping[str, str]) -> s
 def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray | None:
     """The unit axis (in ``bone``'s frame) of the hinge ``joint`` tying ``bone`` to its parent, or None.
 
-    A hinge is a joint named in :data:`HINGE_JOINTS` that the template declares with one
-    coordinate (``skeleton.metadata["joints"]``, as read from an OpenSim model).
+    A hinge is a joint named in :data:`HINGE_JOINTS`: where the template declares its joints
+    (``skeleton.metadata["joints"]``, as read from an OpenSim model), one it declares with one
+    coordinate; a template that declares none (the embedded skeleton) has every such joint a hinge.
 
     The parent's axis is preferred, carried into the bone's frame at the reference pose, so that
     both copies are one line there; a bone's own axis serves when the parent gives none."""
@@ -200,12 +202,13 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
     base = joint[:-2] if joint.endswith(("_r", "_l")) else joint
     if base not in HINGE_JOINTS:
         return None
-    # only where the template models the joint as one (an OpenSim joint with one coordinate):
-    # the embedded skeleton declares no joint types, and on its static-only path (Plug-in Gait's
-    # two upper-arm markers nearly in line with the shoulder) a hinged one-marker ulna traded a
-    # right arm tracked within 6-13 deg for a left arm flipped by 60-140 deg
-    declared = (skeleton.metadata.get("joints") or {}).get(joint) or {}
-    if len(declared.get("coordinates") or ()) != 1:
+    # A template that declares its joints (an OpenSim model) has a hinge only where it models the
+    # joint with one coordinate. The embedded skeleton declares none: its elbow is the hinge anatomy
+    # makes it. (With the vertebrae scaled by the chest's size its static-only path put the shoulders
+    # 53-81 mm high, and a hinged one-marker ulna then flipped the left arm by 60-170 deg; with the
+    # spine's own scaling the hinge holds both arms, phantoms of seeds 1-3.)
+    declared = skeleton.metadata.get("joints") or {}
+    if declared and len((declared.get(joint) or {}).get("coordinates") or ()) != 1:
         return None
     b = skeleton.bones[bone]
     parent = skeleton.bones[b.parent]

@@ -41,9 +41,10 @@ PIVOT_JOINTS = ("proximal_radioulnar",)
 #: markers also set the ulna's flexion, which its one marker over the proximal shaft, 10-15 mm
 #: from where a template puts it, set 12-16 degrees off. The generic skeleton's radius pivots at
 #: ``proximal_radioulnar``, which has no axis of that name: the forearm model drives it there.
-#: The solver uses a hinge only where the template declares the joint with one coordinate (an
-#: OpenSim model's pin joints) and a bone's markers cannot hold it on ball joints
-#: (:func:`bonecap.motion.lsq.plan_segments`).
+#: The solver uses a hinge only where a bone's markers cannot hold it on ball joints
+#: (:func:`bonecap.motion.lsq.plan_segments`), and, for a template that declares its joints (an
+#: OpenSim model), only where it declares the joint with one coordinate (its pin joints); the
+#: embedded skeleton declares none and takes these as the hinges anatomy makes them.
 HINGE_JOINTS = ("elbow", "radioulnar")
 
 
