@@ -205,7 +205,7 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
     # A template that declares its joints (an OpenSim model) has a hinge only where it models the
     # joint with one coordinate. The embedded skeleton declares none: its elbow is the hinge anatomy
     # makes it. (With the vertebrae scaled by the chest's size its static-only path put the shoulders
-    # 53-81 mm high, and a hinged one-marker ulna then flipped the left arm by 60-170 deg; with the
+    # 53-81 mm high, and a hinged one-marker ulna then flipped the left arm by 51-174 deg; with the
     # spine's own scaling the hinge holds both arms, phantoms of seeds 1-3.)
     declared = skeleton.metadata.get("joints") or {}
     if declared and len((declared.get(joint) or {}).get("coordinates") or ()) != 1:
