@@ -581,8 +581,10 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     # Not to convergence: the scaled template's markers sit where the manual puts them, and a full
     # least-squares fit follows their misplacement into the joints (phantoms of seeds 1-3: median over
     # bones 4.6 / 9.7 / 7.6 -> 7.6 / 14.6 / 13.3 deg in the trials; the Plug-in Gait subject of
-    # ../shared: its left femur adducted by 34 deg). The few sweeps stop near the template's upright
-    # reference pose, a prior the fit lacks otherwise.
+    # ../shared: its left femur adducted by 34 deg; with the spine's own scaling and the elbow hinge,
+    # 0.83 / 2.05 / 1.54 -> 1.60 / 1.31 / 2.36 deg and that subject's hip flexion RMS 1.6 / 1.3 -> 2.6 / 2.9
+    # against Vicon's). The few sweeps stop near the template's upright reference pose, a prior the fit
+    # lacks otherwise.
     poses = neutral_twist(sk, pose_to_static(sk, bones, local, lab, converge=False))
     poses = neutral_twist(sk, poses, HAND_PREFIXES, HAND_AXES)
     poses = joint_consistent(sk, neutral_twist(sk, poses, FOOT_PREFIXES, FOOT_AXES))
