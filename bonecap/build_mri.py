@@ -39,6 +39,7 @@ from typing import Any, Callable
 import numpy as np
 
 from bonecap.errors import DataError, InputError
+from bonecap.io import load_yaml
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
 from bonecap.parallel import Pending, default_workers, fork_map, fork_start
@@ -455,7 +456,7 @@ def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.n
         raise InputError(f"no label -> bone table beside the label map (looked for {stem}.yaml, {stem}.json, "
                          f"labels.yaml, labels.json)", path)
     try:
-        doc = yaml.safe_load(table_path.read_text()) if table_path.suffix != ".json" \
+        doc = load_yaml(table_path.read_text()) if table_path.suffix != ".json" \
             else json.loads(table_path.read_text())
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise InputError(f"unreadable label table ({type(exc).__name__})", table_path) from None
@@ -501,7 +502,7 @@ def load_seeds(path: str | os.PathLike, *, with_settings: bool = False):
     if not path.is_file():
         raise InputError("no such seeds file", path)
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise InputError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
     seeds = doc.get("seeds", doc) if isinstance(doc, dict) else None

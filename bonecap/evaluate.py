@@ -253,8 +253,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     """
     import json
 
-    import yaml
-
+    from bonecap.io import load_yaml
     from bonecap.io.mesh import read_mesh
     from bonecap.subject import read_subject
 
@@ -288,7 +287,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     binding = truth_dir / "marker_binding.yaml"
     skel_truth = truth_dir / "skeleton.json"
     if binding.is_file() and skel_truth.is_file():
-        tb = yaml.safe_load(binding.read_text())["markers"]
+        tb = load_yaml(binding.read_text())["markers"]
         ts = json.loads(skel_truth.read_text())["bones"]
         for name, m in subject.markers.items():
             t = tb.get(name)

@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from bonecap.errors import BonecapError, DataError, FormatError, InputError
+from bonecap.io import load_yaml
 from bonecap.model import Skeleton
 
 __all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
@@ -192,7 +193,7 @@ def load_marker_set(name_or_path: str | os.PathLike, _seen: tuple[str, ...] = ()
 
         return marker_set_from_osim(read_osim_markers(path), name=path.stem, source=str(path))
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise FormatError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("markers"), dict):

@@ -280,8 +280,7 @@ def load_scaling_groups(marker_set) -> dict[str, dict]:
     """
     from pathlib import Path
 
-    import yaml
-
+    from bonecap.io import load_yaml
     from bonecap.markers import _resolve_path
 
     source = getattr(marker_set, "source", "")
@@ -292,7 +291,7 @@ def load_scaling_groups(marker_set) -> dict[str, dict]:
     chain = []
     while path is not None and str(path) not in seen:
         seen.add(str(path))
-        doc = yaml.safe_load(path.read_text()) or {}
+        doc = load_yaml(path.read_text()) or {}
         chain.append(doc.get("scaling") or {})
         parent = doc.get("extends")
         path = _resolve_path(parent) if parent else None

@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from bonecap.errors import DataError, FormatError, InputError
+from bonecap.io import load_yaml
 from bonecap.io.atomic import atomic_path
 from bonecap.io.mesh import read_mesh, write_mesh
 from bonecap.model import Bone, Mesh, Skeleton
@@ -254,7 +255,7 @@ def read_subject(subject_dir: str | os.PathLike, *, load_meshes: bool = True) ->
         raise InputError("not a subject folder (no subject.yaml): run `bonecap build-subject` first", subject_dir)
     base = path.parent
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise FormatError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
     if not isinstance(doc, dict) or doc.get("format") != "bonecap subject":

@@ -424,10 +424,10 @@ def load_tissue_intensities(path: str | os.PathLike | None = None) -> dict[str, 
     ValueError
         The file lacks ``tissues`` or ``noise_sigma``.
     """
-    import yaml
+    from bonecap.io import load_yaml
 
     path = TISSUE_YAML if path is None else Path(path)
-    doc = yaml.safe_load(Path(path).read_text())
+    doc = load_yaml(Path(path).read_text())
     if not isinstance(doc, dict) or "tissues" not in doc or "noise_sigma" not in doc:
         raise ValueError(f"{path}: not a tissue table (needs 'tissues' and 'noise_sigma')")
     return doc

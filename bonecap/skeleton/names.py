@@ -14,9 +14,8 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
-import yaml
-
 from bonecap.errors import BonecapError, InputError
+from bonecap.io import load_yaml
 
 __all__ = ["OPENSIM_FAMILIES", "model_family", "opensim_body_map", "opensim_body_of", "bones_of_body"]
 
@@ -28,7 +27,7 @@ OPENSIM_FAMILIES = ("rajagopal2016", "gait2392", "hamner2010")
 def _load() -> dict[str, dict[str, list[str]]]:
     if not _MAP_FILE.is_file():
         raise BonecapError("the OpenSim name map is missing (bonecap must be run from its source tree)", _MAP_FILE)
-    return yaml.safe_load(_MAP_FILE.read_text())
+    return load_yaml(_MAP_FILE.read_text())
 
 
 def model_family(model: str | os.PathLike) -> str:
