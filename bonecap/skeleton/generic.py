@@ -111,6 +111,8 @@ def load_generic_description(path: str | os.PathLike | None = None) -> dict:
     """
     import yaml
 
+    from ..io import load_yaml
+
     p = Path(path) if path is not None else DESCRIPTION_PATH
     if not p.is_file():
         raise InputError(
@@ -125,7 +127,7 @@ def load_generic_description(path: str | os.PathLike | None = None) -> dict:
         return copy.deepcopy(cached)
     try:
         with open(p, encoding="utf-8") as fh:
-            desc = yaml.load(fh, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+            desc = load_yaml(fh)
     except yaml.YAMLError as exc:
         raise InputError(f"not valid YAML: {exc}", p) from None
     for key in ("dimensions", "shape_parameters", "cortical_thickness", "vertebrae", "ribs", "bones"):
