@@ -823,7 +823,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
                 first = False
                 continue
             free_set = set(free)
-            before = Tb[free].copy() if tol_mm is not None else None
+            before = Tb[free] if tol_mm is not None else None     # a copy (fancy indexing)
             # colour 0's batches come first in the list: reversed, colour 1 goes first
             for group, Pg, Qg, Wg in (batches if k % 2 == 0 else batches[::-1]):
                 todo = [i for i, s in enumerate(group) if s in free_set]

@@ -697,11 +697,22 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     return labels, ids
 
 
+# A long bone's section tracked from its section on a neighbouring slice (:func:`_follow_distal_end`,
+# :func:`_fill_single_gaps`): at most this much larger (_continues), overlapping by this fraction
+# within this reach, its marrow within this window and no brighter than this times the previous marrow's.
+_TRACK_GROW = 1.6
+_TRACK_MIN_OVERLAP = 0.5
+_TRACK_REACH_MM = 3.0
+_TRACK_WINDOW_MM = 2.0
+_TRACK_MARROW_TOP = 1.25
+
+
 def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step: int, max_slices: int,
                        data: np.ndarray, smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray,
-                       pixel_mm: float, opts: Mapping, *, grow: float = 1.6,
-                       min_overlap: float = 0.5, reach_mm: float = 3.0, window_mm: float = 2.0,
-                       joint_drop: float = 0.6, marrow_top: float = 1.25) -> int:
+                       pixel_mm: float, opts: Mapping, *, grow: float = _TRACK_GROW,
+                       min_overlap: float = _TRACK_MIN_OVERLAP, reach_mm: float = _TRACK_REACH_MM,
+                       window_mm: float = _TRACK_WINDOW_MM, joint_drop: float = 0.6,
+                       marrow_top: float = _TRACK_MARROW_TOP) -> int:
     """Follow a long bone past the last slice its search reached (in place); the number of slices added.
 
     Only when the bone is labelled on that slice (it goes on past the search).
@@ -775,8 +786,9 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
 
 def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: np.ndarray, data: np.ndarray,
                       smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
-                      *, grow: float = 1.6, min_overlap: float = 0.5, reach_mm: float = 3.0, window_mm: float = 2.0,
-                      marrow_top: float = 1.25) -> int:
+                      *, grow: float = _TRACK_GROW, min_overlap: float = _TRACK_MIN_OVERLAP,
+                      reach_mm: float = _TRACK_REACH_MM, window_mm: float = _TRACK_WINDOW_MM,
+                      marrow_top: float = _TRACK_MARROW_TOP) -> int:
     """Fill a long bone's single missing slices between two of its sections (in place); how many.
 
     A slice searched and left empty between two sections of the bone is where the whole-slice rule
