@@ -248,3 +248,54 @@ def test_name_capsules_settles_close_pairs_before_reaching_far():
     # a capsule in two stations' overlap, found twice 1 mm apart, is one capsule
     merged = _merge_close(np.array([[0.0, 0, 0], [1.0, 0, 0], [50.0, 0, 0]]), 4.0)
     assert len(merged) == 2 and np.allclose(sorted(merged[:, 0]), [0.5, 50.0])
+
+
+def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
+    """A hand turned 9 deg about the wrist and 8 % larger than the skeleton's: its capsule-measured markers
+    bring the skeleton's hand to it (the soft-tissue offsets do not scale: the repeated fit takes them in);
+    a fit beyond the limits, or a foot with its heel and toe only where the roots do not ask for it, stays."""
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_mri import _rotate_about, _scale_about, _subtree, pose_from_capsules
+    from bonecap.markers import load_marker_set, place_markers
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+    mset = load_marker_set("kojima_paper")
+    hand = _subtree(sk, "carpals_r")
+    names = [n for n, m in mset.markers.items() if m.bone in hand and not m.virtual]
+    assert len(names) >= 4
+    wrist = sk.bones["radius_r"].landmark_in_world("wrist")
+    R = Rotation.from_rotvec(np.radians(9.0) * np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93]))
+    truth = _scale_about(sk, hand, wrist, 1.08)
+    _rotate_about(truth, hand, wrist, R.as_matrix())
+    measured = place_markers(mset, truth, names)
+    fitted, report = pose_from_capsules(sk, mset, measured)
+    r = report["carpals_r"]
+    assert r["applied"] == 1.0 and r["rms_before_mm"] > 15.0 and r["rms_after_mm"] < 0.3
+    assert abs(r["scale"] - 1.08) < 0.01 and abs(r["turn_deg"] - 9.0) < 0.3
+    for b in hand:
+        T, Tt = fitted.bones[b].bone_to_world, truth.bones[b].bone_to_world
+        assert np.degrees(Rotation.from_matrix(T[:3, :3].T @ Tt[:3, :3]).magnitude()) < 0.3
+        assert np.linalg.norm(T[:3, 3] - Tt[:3, 3]) < 1.0
+    # the input is not changed, the other bones are the input's, the left hand had no markers
+    assert np.allclose(sk.bones["carpals_r"].bone_to_world, load_template("default").bones["carpals_r"].bone_to_world)
+    assert fitted.bones["radius_r"] is sk.bones["radius_r"] and "carpals_l" not in report
+    # a capsule named for the wrong marker (one finger marker given another's capsule) is left out
+    swapped = dict(measured)
+    swapped[names[-1]] = measured[names[-1]] + np.array([0.0, 25.0, -10.0])
+    fitted2, report2 = pose_from_capsules(sk, mset, swapped)
+    assert report2["carpals_r"]["dropped"] == names[-1] and report2["carpals_r"]["rms_after_mm"] < 0.3
+    assert np.allclose(fitted2.bones["carpals_r"].bone_to_world, fitted.bones["carpals_r"].bone_to_world, atol=1e-3)
+    # a turn beyond max_deg is measured but not applied
+    far = _scale_about(sk, hand, wrist, 1.0)
+    _rotate_about(far, hand, wrist, Rotation.from_rotvec([0.0, 0.0, np.radians(40.0)]).as_matrix())
+    kept, rep = pose_from_capsules(sk, mset, place_markers(mset, far, names))
+    assert rep["carpals_r"]["applied"] == 0.0 and rep["carpals_r"]["turn_deg"] > 35.0
+    assert np.allclose(kept.bones["carpals_r"].bone_to_world, sk.bones["carpals_r"].bone_to_world)
+    # one marker: nothing to fit
+    assert pose_from_capsules(sk, mset, {names[0]: measured[names[0]]})[1] == {}
+    with pytest.raises(ValueError, match="scale_limits"):
+        pose_from_capsules(sk, mset, measured, scale_limits=(1.1, 1.3))
+    with pytest.raises(ValueError, match="iterations"):
+        pose_from_capsules(sk, mset, measured, iterations=0)
