@@ -67,3 +67,23 @@ def test_frames_of_another_template_are_left_alone(generic):
     out, moved = refresh_isb_frames(sk, sk)
     assert "humerus_r" not in moved and "tibia_r" in moved and moved["tibia_r"]["mm"] < 1e-6
     np.testing.assert_allclose(out.bones["humerus_r"].bone_to_world, T)
+
+
+def test_the_fibula_takes_its_tibias_frame(generic):
+    """The fibula's frame is the tibia's (ISB's one tibia/fibula segment): a fibula whose carried frame
+    turned 4 deg about the long axis gets the tibia's back, its geometry kept in world; a template whose
+    fibula has a frame of its own is left alone."""
+    sk = build_generic_skeleton()
+    assert _angle(generic.bones["fibula_l"].bone_to_world, generic.bones["tibia_l"].bone_to_world) < 1e-9
+    turned = sk.bones["fibula_l"].bone_to_world.copy()
+    c, s = np.cos(np.radians(4)), np.sin(np.radians(4))
+    turned[:3, :3] = turned[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    sk.bones["fibula_l"] = _reframe(sk.bones["fibula_l"], turned)
+    before = sk.world_mesh("fibula_l").vertices
+    out, moved = refresh_isb_frames(sk, generic)
+    assert moved["fibula_l"]["deg"] == pytest.approx(4.0, abs=1e-6)
+    np.testing.assert_allclose(out.bones["fibula_l"].bone_to_world, out.bones["tibia_l"].bone_to_world, atol=1e-9)
+    np.testing.assert_allclose(out.world_mesh("fibula_l").vertices, before, atol=1e-6)
+    # a template with a fibula frame of its own (here: the turned one) keeps the fibula's
+    own, moved_own = refresh_isb_frames(sk, sk)
+    assert _angle(own.bones["fibula_l"].bone_to_world, turned) < 1e-6
