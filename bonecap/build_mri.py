@@ -1180,7 +1180,7 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
     The personal skeleton carries a hand from its neighbours' warps at the
     template's wrist angle and size (the mission's "hands from markers"): on
     phantoms of seeds 1-3 the hands lay 3-6 deg from the truth in the MRI and
-    were 6-9 % small, and every capsule bound to them carried that into
+    were up to 9 % small, and every capsule bound to them carried that into
     every trial. The capsules measure where the segment's
     markers really were: the segment (the root and its subtree) is scaled and
     turned about its proximal joint's centre on the parent (the radius's
