@@ -41,7 +41,7 @@ __all__ = ["ISB_FRAMES", "SHARED_FRAMES", "isb_frame", "refresh_isb_frames"]
 
 #: Bones whose frame *is* another bone's (stem names, either side): ISB's tibia/fibula frame is one
 #: segment's [1]_, and the generic skeleton gives the fibula the tibia's frame. A warp carries each
-#: bone's rotation separately (its own rigid fit), which left the personal fibula's frame 2-3 deg off
+#: bone's rotation separately (its own rigid fit), which left the personal fibula's frame 1-3 deg off
 #: its tibia's about the long axis on phantoms of seeds 1-3 (the thin fibula's fit is the looser:
 #: 1.9-6.5 deg from the truth where the tibia was 0.2-5.9).
 SHARED_FRAMES: dict[str, str] = {"fibula": "tibia"}
@@ -224,7 +224,7 @@ def refresh_isb_frames(skeleton: Skeleton, template: Skeleton, tol_deg: float = 
     # a shared frame is its owner's, rebuilt or not: where the template has them equal
     for name, bone in skeleton.bones.items():
         stem, side = (name[:-2], name[-2:]) if name.endswith(("_r", "_l")) else (name, "")
-        owner = SHARED_FRAMES.get(stem, "") + side if stem in SHARED_FRAMES else None
+        owner = SHARED_FRAMES[stem] + side if stem in SHARED_FRAMES else None
         if owner is None or owner not in bones or name not in template.bones or owner not in template.bones:
             continue
         if not _close(template.bones[name].bone_to_world, template.bones[owner].bone_to_world, tol_deg, tol_mm):
