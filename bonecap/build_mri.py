@@ -1162,14 +1162,6 @@ def _scale_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, s: fl
     return dataclasses.replace(skeleton, bones=new, metadata=dict(skeleton.metadata))
 
 
-def _similarity_about(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, float]:
-    """Rotation ``R`` and factor ``s`` minimising ``sum |s R a - b|^2`` (vectors from a fixed centre)."""
-    U, sv, Vt = np.linalg.svd(A.T @ B)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, float(np.sum(B * (A @ R.T)) / np.sum(A * A))
-
-
 def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.ndarray],
                        roots: tuple[str, ...] = CAPSULE_POSED_ROOTS, *, max_deg: float = CAPSULE_POSE_MAX_DEG,
                        scale_limits: tuple[float, float] = CAPSULE_POSE_SCALE,
@@ -1229,6 +1221,7 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
 
     from bonecap.markers import place_markers
     from bonecap.skeleton.kinematics import proximal_joint
+    from bonecap.skeleton.warp import _kabsch
 
     if not (max_deg > 0 and max_rms_mm > 0 and 0 < scale_limits[0] <= 1.0 <= scale_limits[1]):
         raise ValueError(f"max_deg and max_rms_mm must be positive and scale_limits bracket 1, got "
@@ -1263,7 +1256,9 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
                 return None                   # in line with the joint: the turn about that line is free
             fitted, R_tot, s_tot = skeleton, np.eye(3), 1.0
             for _ in range(int(iterations)):
-                R, s = _similarity_about(A, B)
+                M = _kabsch(A, B, scale=True, centred=False)[:3, :3]          # s R
+                s = float(np.cbrt(np.linalg.det(M)))
+                R = M / s if s > 0 else M
                 if not (np.isfinite(s) and s > 0):
                     break
                 fitted = _scale_about(fitted, bones, centre, s)

@@ -84,9 +84,10 @@ def _check_mesh(name: str, m) -> Mesh:
     return m
 
 
-def _kabsch(A: np.ndarray, B: np.ndarray, scale: bool = False) -> np.ndarray:
-    """Least-squares rigid (or similarity) 4x4 with ``B ~ T A`` (Umeyama 1991)."""
-    ca, cb = A.mean(0), B.mean(0)
+def _kabsch(A: np.ndarray, B: np.ndarray, scale: bool = False, centred: bool = True) -> np.ndarray:
+    """Least-squares rigid (or similarity) 4x4 with ``B ~ T A`` (Umeyama 1991); ``centred=False``: about
+    the origin (no translation: vectors from a fixed centre, e.g. a joint)."""
+    ca, cb = (A.mean(0), B.mean(0)) if centred else (np.zeros(3), np.zeros(3))
     H = (A - ca).T @ (B - cb)
     U, S, Vt = np.linalg.svd(H)
     D = np.eye(3)
