@@ -574,6 +574,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     from bonecap.progress import stage_bar
     from bonecap.segmentation.bones import segment_bones
     from bonecap.segmentation.skin import segment_body
+    from bonecap.skeleton.isb import malleolar_frames, malleolar_turns
     from bonecap.skeleton.template import load_template
     from bonecap.skeleton.warp import warp_skeleton
     from bonecap.stations import normalise_intensity, order_stations, register_stations
@@ -749,6 +750,15 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         if registering is not None:
             registering.close()
         raise
+    # the tibiae's frames (and the feet's carried with them) turned to their malleoli's twist, after the
+    # markers are placed and bound: a frame only says how a bone's pose is reported, so the bones stay
+    # where the warp and the static put them (turned before the placement, the shank markers' "lateral"
+    # turned with it and the static's shanks followed: seed 1's legs 37.5 -> 47.9 deg summed)
+    measured = {n for n, r in (warp_report.get("bones") or {}).items() if r.get("source") == "own target"}
+    turns = malleolar_turns(subject.skeleton, template, measured)
+    if turns:
+        reframe_subject(subject, malleolar_frames(subject.skeleton, turns, measured))
+    marker_report["malleolar_turns_deg"] = {k: round(v, 2) for k, v in turns.items()}
     lap("markers")
     bar.update()
     forearm_report = None
@@ -980,6 +990,31 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
             b.bone_to_world = M @ b.bone_to_world
     turned = repose_limbs(posed, sections)
     return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned}
+
+
+def reframe_subject(subject, frames: dict[str, np.ndarray]) -> None:
+    """Describe bones of a subject in new frames, in place; nothing moves in world.
+
+    Each bone's meshes, landmarks and joints (:func:`bonecap.skeleton.isb.reframe_bone`), the markers
+    bound to it and its solved static pose (``subject.static["bone_to_lab"]``) are re-expressed in
+    ``frames[bone]`` (bone-to-world, the skeleton's world frame).
+    """
+    from bonecap.skeleton.isb import reframe_bone
+    from bonecap.subject import MarkerBinding
+
+    sk = subject.skeleton
+    for b, T_new in frames.items():
+        if b not in sk.bones:
+            raise ValueError(f"reframe_subject: no bone {b!r} in the skeleton")
+        T_old = sk.bones[b].bone_to_world
+        C = np.linalg.solve(T_new, T_old)                   # old bone frame -> new bone frame
+        for n, m in list(subject.markers.items()):
+            if m.bone == b:
+                subject.markers[n] = MarkerBinding(n, b, C[:3, :3] @ m.local + C[:3, 3], m.source, m.weight)
+        static = (subject.static or {}).get("bone_to_lab") or {}
+        if b in static:
+            static[b] = np.asarray(static[b], float) @ np.linalg.inv(C)
+        sk.bones[b] = reframe_bone(sk.bones[b], T_new)
 
 
 def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, functional=()) -> dict[str, Any]:

@@ -611,3 +611,39 @@ def test_no_mri_trunk_and_arms_against_the_truth(phantom, tmp_path):
             ok = np.isfinite(a).all(axis=(1, 2)) & np.isfinite(t).all(axis=(1, 2))
             assert ok.mean() > 0.9, bone
             assert np.median(rotation_angle_deg(a[ok], t[ok])) < 15.0, (trial, bone)
+
+
+def test_reframe_subject_moves_nothing_in_world():
+    """A bone described in a new frame keeps its markers and its static pose where they were in world
+    (what the malleolar turn of the tibia's frame after the static binding relies on)."""
+    from bonecap.build_mri import reframe_subject
+    from bonecap.skeleton.generic import build_generic_skeleton
+    from bonecap.subject import MarkerBinding, Subject
+
+    sk = build_generic_skeleton()
+    T = sk.bones["tibia_r"].bone_to_world
+    rng = np.random.default_rng(0)
+    local = rng.normal(0.0, 40.0, (3, 3))
+    sub = Subject(skeleton=sk, markers={f"M{i}": MarkerBinding(f"M{i}", "tibia_r", p) for i, p in enumerate(local)})
+    sub.markers["RTHI"] = MarkerBinding("RTHI", "femur_r", np.array([10.0, 20.0, 30.0]))
+    P = np.eye(4)
+    P[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    P[:3, 3] = [100.0, 200.0, 900.0]
+    sub.static = {"bone_to_lab": {"tibia_r": P.copy()}}
+    world = [T[:3, :3] @ p + T[:3, 3] for p in local]
+    lab = [P[:3, :3] @ p + P[:3, 3] for p in local]
+    T_new = T.copy()
+    c, s = np.cos(0.2), np.sin(0.2)
+    T_new[:3, :3] = T[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    T_new[:3, 3] += [5.0, 0.0, -3.0]
+    reframe_subject(sub, {"tibia_r": T_new})
+    assert np.allclose(sub.skeleton.bones["tibia_r"].bone_to_world, T_new)
+    P_new = sub.static["bone_to_lab"]["tibia_r"]
+    for i in range(3):
+        q = sub.markers[f"M{i}"].local
+        assert np.allclose(T_new[:3, :3] @ q + T_new[:3, 3], world[i])
+        assert np.allclose(P_new[:3, :3] @ q + P_new[:3, 3], lab[i])
+        assert not np.allclose(q, local[i])
+    assert np.allclose(sub.markers["RTHI"].local, [10.0, 20.0, 30.0])
+    with pytest.raises(ValueError, match="no bone"):
+        reframe_subject(sub, {"tibia_x": T_new})

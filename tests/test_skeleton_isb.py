@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from bonecap.skeleton.generic import build_generic_skeleton
-from bonecap.skeleton.isb import _reframe, isb_frame, refresh_isb_frames
+from bonecap.skeleton.isb import (_reframe, distal_fibula_bearing, isb_frame, malleolar_frames, malleolar_turns,
+                                  reframe_bone, refresh_isb_frames)
 
 
 @pytest.fixture(scope="module")
@@ -87,3 +88,68 @@ def test_the_fibula_takes_its_tibias_frame(generic):
     # a template with a fibula frame of its own (here: the turned one) keeps the fibula's
     own, moved_own = refresh_isb_frames(sk, sk)
     assert _angle(own.bones["fibula_l"].bone_to_world, turned) < 1e-6
+
+
+def _turned_about_y(T, deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return out
+
+
+LEG = ("tibia", "fibula", "talus", "calcaneus", "foot")
+
+
+def test_malleolar_turns_undo_a_carried_twist(generic):
+    """A shank whose frames were carried 6 deg (right) and -4 deg (left) about the long axis, the bones
+    themselves where they were (the warp's error on a tibia of another torsion), is turned back: the
+    tibia's and fibula's frames to the template's, the feet's with them; nothing moves in world."""
+    sk = build_generic_skeleton()
+    for side, deg in (("_r", 6.0), ("_l", -4.0)):
+        T = _turned_about_y(sk.bones["tibia" + side].bone_to_world, deg)
+        W = T[:3, :3] @ sk.bones["tibia" + side].bone_to_world[:3, :3].T
+        sk.bones["tibia" + side] = reframe_bone(sk.bones["tibia" + side], T)
+        sk.bones["fibula" + side] = reframe_bone(sk.bones["fibula" + side], T)
+        for b in LEG[2:]:
+            Tb = sk.bones[b + side].bone_to_world.copy()
+            Tb[:3, :3] = W @ Tb[:3, :3]
+            sk.bones[b + side] = reframe_bone(sk.bones[b + side], Tb)
+    measured = {b + s for b in ("tibia", "fibula") for s in ("_r", "_l")}
+    turns = malleolar_turns(sk, generic, measured)
+    assert turns["tibia_r"] == pytest.approx(-6.0, abs=1e-6)
+    assert turns["tibia_l"] == pytest.approx(4.0, abs=1e-6)
+    frames = malleolar_frames(sk, turns, measured)
+    assert set(frames) == {b + s for b in LEG for s in ("_r", "_l")}
+    for name, T in frames.items():
+        assert _angle(T, generic.bones[name].bone_to_world) < 1e-4, name
+        np.testing.assert_allclose(T[:3, 3], sk.bones[name].bone_to_world[:3, 3])
+        before = sk.world_mesh(name).vertices
+        moved = reframe_bone(sk.bones[name], T)
+        np.testing.assert_allclose(moved.bone_to_world[:3, :3] @ moved.mesh.vertices.T + T[:3, 3:4],
+                                   before.T, atol=1e-9)
+    # a measured talus keeps its own frame
+    assert "talus_r" not in malleolar_frames(sk, turns, measured | {"talus_r"})
+
+
+def test_malleolar_turns_need_both_bones_measured_and_stay_bounded(generic):
+    sk = build_generic_skeleton()
+    assert malleolar_turns(sk, generic, {"tibia_r", "fibula_r", "tibia_l", "fibula_l"}) == pytest.approx(
+        {"tibia_r": 0.0, "tibia_l": 0.0}, abs=1e-9)
+    assert malleolar_turns(sk, generic, {"tibia_r", "fibula_l"}) == {}
+    for b in ("tibia_r", "fibula_r"):
+        sk.bones[b] = reframe_bone(sk.bones[b], _turned_about_y(generic.bones["tibia_r"].bone_to_world, 25.0))
+    assert "tibia_r" not in malleolar_turns(sk, generic, {"tibia_r", "fibula_r"})
+    assert malleolar_turns(sk, generic, {"tibia_r", "fibula_r"}, max_deg=30.0)["tibia_r"] == pytest.approx(
+        -25.0, abs=1e-6)
+    # the bearing itself, atan2(anterior, rightward): the fibula lies lateral and a little posterior of
+    # the tibia above the ankle (right: Z lateral, a small negative angle; left: -Z, near -180)
+    a_r, a_l = distal_fibula_bearing(generic, "_r"), distal_fibula_bearing(generic, "_l")
+    assert -30.0 < a_r < 0.0 and 150.0 < abs(a_l), (a_r, a_l)
+    with pytest.raises(ValueError, match="side"):
+        distal_fibula_bearing(generic, "r")
+    with pytest.raises(ValueError, match="window"):
+        distal_fibula_bearing(generic, "_r", window=(0.3, 0.2))
+    with pytest.raises(ValueError, match="max_deg"):
+        malleolar_turns(sk, generic, set(), max_deg=0.0)
+    with pytest.raises(ValueError, match="4x4"):
+        reframe_bone(sk.bones["tibia_r"], np.eye(3))

@@ -37,7 +37,9 @@ import numpy as np
 
 from bonecap.model import Bone, Mesh, Skeleton
 
-__all__ = ["ISB_FRAMES", "SHARED_FRAMES", "isb_frame", "refresh_isb_frames"]
+__all__ = ["ISB_FRAMES", "SHARED_FRAMES", "isb_frame", "refresh_isb_frames", "DISTAL_FIBULA_WINDOW",
+           "MAX_MALLEOLAR_TURN_DEG", "distal_fibula_bearing", "malleolar_turns", "malleolar_frames",
+           "reframe_bone"]
 
 #: Bones whose frame *is* another bone's (stem names, either side): ISB's tibia/fibula frame is one
 #: segment's [1]_, and the generic skeleton gives the fibula the tibia's frame. A warp carries each
@@ -241,3 +243,180 @@ def refresh_isb_frames(skeleton: Skeleton, template: Skeleton, tol_deg: float = 
 def _close(A: np.ndarray, B: np.ndarray, tol_deg: float, tol_mm: float) -> bool:
     c = np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1.0, 1.0)
     return float(np.degrees(np.arccos(c))) <= tol_deg and float(np.linalg.norm(A[:3, 3] - B[:3, 3])) <= tol_mm
+
+
+#: Where along the tibia (fractions of its length from its distal end) :func:`distal_fibula_bearing`
+#: reads the fibula's bearing: 5-20 %, above the ankle joint (the extractions lose the malleoli's
+#: tips) and below the mid-shaft (where the bearing varied by +-4 deg between phantom seeds).
+DISTAL_FIBULA_WINDOW = (0.05, 0.2)
+#: The largest turn :func:`malleolar_turns` applies (deg); beyond it the meshes are not trusted.
+MAX_MALLEOLAR_TURN_DEG = 15.0
+
+
+def distal_fibula_bearing(skeleton: Skeleton, side: str, window: tuple[float, float] = DISTAL_FIBULA_WINDOW
+                          ) -> float | None:
+    """Bearing of the fibula from the tibia above the ankle, in the tibia's frame (deg about its Y).
+
+    The mean of the fibula's surface points minus the tibia's, over the slab
+    ``window`` (fractions of the tibia's length from its distal end, along
+    the tibia frame's Y), as ``atan2(x, z)`` in the tibia's frame (X
+    anterior, Y proximal, Z to the right on both sides).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        Any world frame; needs the ``tibia<side>`` and ``fibula<side>`` meshes.
+    side : {"_r", "_l"}
+    window : (float, float)
+
+    Returns
+    -------
+    float or None
+        Degrees in (-180, 180]; None without both meshes or with fewer than ten
+        vertices of either bone in the slab.
+    """
+    if side not in ("_r", "_l"):
+        raise ValueError(f"side must be '_r' or '_l', got {side!r}")
+    if not 0.0 <= window[0] < window[1] <= 1.0:
+        raise ValueError(f"window must be two fractions 0 <= lo < hi <= 1, got {window!r}")
+    tib, fib = skeleton.bones.get("tibia" + side), skeleton.bones.get("fibula" + side)
+    if tib is None or fib is None or tib.mesh is None or fib.mesh is None:
+        return None
+    M = np.linalg.solve(tib.bone_to_world, fib.bone_to_world)        # fibula frame -> tibia frame
+    t = np.asarray(tib.mesh.vertices, float)
+    f = np.asarray(fib.mesh.vertices, float) @ M[:3, :3].T + M[:3, 3]
+    y0, y1 = float(t[:, 1].min()), float(t[:, 1].max())
+    lo, hi = y0 + window[0] * (y1 - y0), y0 + window[1] * (y1 - y0)
+    ts, fs = (t[:, 1] > lo) & (t[:, 1] < hi), (f[:, 1] > lo) & (f[:, 1] < hi)
+    if ts.sum() < 10 or fs.sum() < 10:
+        return None
+    v = f[fs].mean(axis=0) - t[ts].mean(axis=0)
+    return float(np.degrees(np.arctan2(v[0], v[2])))
+
+
+def malleolar_turns(skeleton: Skeleton, template: Skeleton, measured, max_deg: float = MAX_MALLEOLAR_TURN_DEG
+                    ) -> dict[str, float]:
+    """Per tibia, the turn of its frame about its long axis that puts the malleoli where ISB wants them.
+
+    The ISB tibia/fibula frame takes its twist from the malleoli [1]_. A warp
+    carries each bone's frame with its rigid fit, which the condyles and the
+    shaft decide, so the personal frame inherits the template's tibial torsion
+    (drawn from 10-30 deg on the phantoms): it was -5.9 to +3.9 deg off the
+    truth about the long axis on six phantom subjects. The malleoli's own
+    landmarks cannot correct it: they sit where the extraction is worst (the
+    tibia runs into the talus, the fibula stops short of its tip), and 10 mm
+    of error on landmarks 65 mm apart is 9 deg. The fibula's bearing from the
+    tibia a few centimetres higher (:func:`distal_fibula_bearing`) turns with
+    the malleoli and both bones' extractions measure it: in the truth's own
+    frame it was within 0.6 deg of the template's on those phantoms. The turn
+    is the personal bearing minus the template's.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The warped personal skeleton (any world frame).
+    template : Skeleton
+        The template it was warped from (its frames the definition's).
+    measured : collection of str
+        Bones warped onto their own extracted surfaces; a side is turned only
+        where its tibia and fibula both are.
+    max_deg : float
+        Larger turns are not applied (the side is left out).
+
+    Returns
+    -------
+    dict of str -> float
+        ``tibia_r`` / ``tibia_l`` -> degrees about that tibia frame's Y.
+
+    References
+    ----------
+    .. [1] Wu G et al. (2002), see the module.
+    """
+    if not max_deg > 0:
+        raise ValueError(f"max_deg must be positive, got {max_deg!r}")
+    measured = set(measured)
+    out: dict[str, float] = {}
+    for side in ("_r", "_l"):
+        tib, fib = "tibia" + side, "fibula" + side
+        if not {tib, fib} <= measured or tib not in template.bones or fib not in template.bones:
+            continue
+        a_t, a_p = distal_fibula_bearing(template, side), distal_fibula_bearing(skeleton, side)
+        if a_t is None or a_p is None:
+            continue
+        d = (a_p - a_t + 180.0) % 360.0 - 180.0
+        if abs(d) <= max_deg:
+            out[tib] = float(d)
+    return out
+
+
+def malleolar_frames(skeleton: Skeleton, turns: dict[str, float], measured=()) -> dict[str, np.ndarray]:
+    """New bone-to-world frames for :func:`malleolar_turns`: the tibia's, its fibula's, the foot's.
+
+    Only frames turn: the bones stay where they are in world (apply with
+    :func:`reframe_bone`). The tibia's frame turns by ``turns[tibia]`` about its
+    own Y; the fibula's, where it is the tibia's (:data:`SHARED_FRAMES`), is
+    the new tibia frame; the bones below the ankle that no scan measured
+    (talus, calcaneus, foot: placed with the tibia's carried rotation, and the
+    talus sits in the malleoli's mortise) turn their frames by the same world
+    rotation.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    turns : dict of str -> float
+        Tibia name -> degrees about its frame's Y.
+    measured : collection of str
+        Bones with their own extracted surface (their frames are kept).
+
+    Returns
+    -------
+    dict of str -> ndarray (4, 4)
+        Bone name -> new bone-to-world transform (same world frame).
+    """
+    from scipy.spatial.transform import Rotation
+
+    measured = set(measured)
+    out: dict[str, np.ndarray] = {}
+    for tib, deg in turns.items():
+        if tib not in skeleton.bones:
+            raise ValueError(f"malleolar_frames: no bone {tib!r}")
+        T = skeleton.bones[tib].bone_to_world
+        Ry = Rotation.from_rotvec([0.0, np.radians(deg), 0.0]).as_matrix()
+        T_new = T.copy()
+        T_new[:3, :3] = T[:3, :3] @ Ry
+        out[tib] = T_new
+        W = T_new[:3, :3] @ T[:3, :3].T                                   # the same turn in world
+        fib = "fibula" + tib[len("tibia"):]
+        if fib in skeleton.bones and _close(skeleton.bones[fib].bone_to_world, T, 0.05, 0.05):
+            out[fib] = T_new.copy()
+        below = [n for n, b in skeleton.bones.items() if b.parent == tib and n != fib]
+        k = 0
+        while k < len(below):
+            below += [n for n, b in skeleton.bones.items() if b.parent == below[k] and n not in below]
+            k += 1
+        for n in below:
+            if n in measured:
+                continue
+            Tb = skeleton.bones[n].bone_to_world.copy()
+            Tb[:3, :3] = W @ Tb[:3, :3]
+            out[n] = Tb
+    return out
+
+
+def reframe_bone(bone: Bone, bone_to_world: np.ndarray) -> Bone:
+    """The same bone in world, described in the frame ``bone_to_world`` (meshes, landmarks, joints re-expressed).
+
+    Parameters
+    ----------
+    bone : Bone
+    bone_to_world : ndarray (4, 4)
+        The new frame, in the same world as ``bone.bone_to_world``.
+
+    Returns
+    -------
+    Bone
+    """
+    T = np.asarray(bone_to_world, float)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError("bone_to_world must be a finite 4x4 transform")
+    return _reframe(bone, T)
