@@ -148,6 +148,12 @@ def solve_trial(subject: Subject, names: list[str], measured: np.ndarray, *, rat
     motion.marker_labels = list(names)
     motion.valid = flag_unsupported(subject.skeleton, motion, bones, measured, max_gap_frames)
     motion.transforms[~motion.valid] = np.nan
+    # the kneecaps no marker holds lag the knee's flexion (both solvers carry them on the femur); where
+    # the tibia is lost, so is the knee's angle and the kneecap with it
+    from bonecap.motion.patella import patella_from_knee
+
+    motion.transforms = patella_from_knee(subject.skeleton, motion.bones, motion.transforms, bones)
+    motion.valid &= np.isfinite(motion.transforms).all(axis=(2, 3))
     return motion
 
 
