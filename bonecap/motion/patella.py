@@ -61,12 +61,15 @@ def knee_patellae(skeleton: Skeleton, marker_bones: Sequence[str] = ()) -> list[
     return out
 
 
-def _twist_about(R: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """Signed angle (rad) of the twist part of rotations ``R`` (F, 3, 3) about the unit ``axis``."""
-    from scipy.spatial.transform import Rotation
+def _twist_about_z(R: np.ndarray) -> np.ndarray:
+    """Signed angle (rad) of the twist part of rotations ``R`` (F, 3, 3) about Z.
 
-    q = Rotation.from_matrix(R).as_quat()                     # x, y, z, w
-    return 2.0 * np.arctan2(q[:, :3] @ axis, q[:, 3])
+    With the unit quaternion (x, y, z, w) of ``R``, the twist is ``2 atan2(z, w)``;
+    ``4 w z = R[1, 0] - R[0, 1]`` and ``4 w^2 = 1 + trace(R)``, so it is
+    ``2 atan2(R[1, 0] - R[0, 1], 1 + trace(R))`` without forming the quaternion
+    (a few elementwise operations on every frame instead of scipy's conversion).
+    """
+    return 2.0 * np.arctan2(R[:, 1, 0] - R[:, 0, 1], 1.0 + np.trace(R, axis1=1, axis2=2))
 
 
 def patella_from_knee(skeleton: Skeleton, bones: Sequence[str], transforms: np.ndarray,
@@ -116,7 +119,6 @@ def patella_from_knee(skeleton: Skeleton, bones: Sequence[str], transforms: np.n
         raise ValueError(f"ratio must be within [0, 1] (patellar per knee flexion), got {ratio!r}")
     out = T.copy()
     index = {n: i for i, n in enumerate(names)}
-    axis = np.array([0.0, 0.0, 1.0])
     for patella, femur, tibia in knee_patellae(skeleton, marker_bones):
         if not {patella, femur, tibia} <= set(index):
             continue
@@ -129,7 +131,7 @@ def patella_from_knee(skeleton: Skeleton, bones: Sequence[str], transforms: np.n
         if not ok.any():
             continue
         D = np.swapaxes(Tf[ok, :3, :3], 1, 2) @ Tt[ok, :3, :3] @ R0.T            # knee motion, femur frame
-        flex = _twist_about(D, axis) * ratio
+        flex = _twist_about_z(D) * ratio
         _, centre, _ = proximal_joint(skeleton, tibia)                           # knee centre, femur frame
         c, s = np.cos(flex), np.sin(flex)
         M = np.tile(np.eye(4), (len(flex), 1, 1))
