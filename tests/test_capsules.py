@@ -299,3 +299,59 @@ def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
         pose_from_capsules(sk, mset, measured, scale_limits=(1.1, 1.3))
     with pytest.raises(ValueError, match="iterations"):
         pose_from_capsules(sk, mset, measured, iterations=0)
+
+
+def test_pose_inside_skin_turns_a_hand_back_under_its_skin():
+    """The skin of a hand turned 8 deg about the wrist (its bones' surface 5 mm out, closed): the skeleton's
+    hand, at the template's angle, is turned into it, most of the way back; a skin elsewhere (a hand the
+    scan did not cover) leaves it, and bad settings raise."""
+    from scipy import ndimage
+    from scipy.spatial.transform import Rotation
+    from skimage.measure import marching_cubes
+
+    from bonecap.build_mri import _rotate_about, _subtree, pose_inside_skin
+    from bonecap.phantom.render import voxelise_labels
+    from bonecap.skeleton.kinematics import proximal_joint
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+    hand = _subtree(sk, "carpals_r")
+    _, c_par, _ = proximal_joint(sk, "carpals_r")
+    Tp = sk.bones[sk.bones["carpals_r"].parent].bone_to_world
+    wrist = Tp[:3, :3] @ c_par + Tp[:3, 3]
+    true_R = Rotation.from_rotvec(np.radians(8.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    truth = load_template("default")
+    _rotate_about(truth, hand, wrist, true_R)
+    # the true hand's skin: its bones voxelised at 1 mm, dilated by 5 mm, meshed
+    V = np.concatenate([truth.world_mesh(b).vertices for b in hand])
+    lo, vox = V.min(axis=0) - 20.0, 1.0
+    shape = tuple(int(n) for n in np.ceil((V.max(axis=0) + 20.0 - lo) / vox) + 1)
+    A = np.eye(4)
+    A[:3, :3] *= vox
+    A[:3, 3] = lo
+    bones = voxelise_labels([(truth.world_mesh(b), 1) for b in hand], A, shape, inplane_supersample=1,
+                            through_plane_samples=1) > 0
+    body = ndimage.distance_transform_edt(~bones) * vox <= 5.0
+    verts, faces, _, _ = marching_cubes(np.pad(body, 1).astype(np.float32), 0.5)
+    skin = Mesh((verts - 1.0) * vox + lo, faces, sk.world)       # voxelised by crossings: either winding
+
+    def err(s):
+        return np.degrees(Rotation.from_matrix(truth.bones["carpals_r"].bone_to_world[:3, :3].T
+                                               @ s.bones["carpals_r"].bone_to_world[:3, :3]).magnitude())
+
+    assert err(sk) == pytest.approx(8.0, abs=1e-6)
+    out, report = pose_inside_skin(sk, skin, ("carpals_r",))
+    rep = report["carpals_r"]
+    assert rep["applied"] == 1.0 and rep["shallow_after"] < rep["shallow_before"]
+    assert err(out) < 3.0, (err(out), rep)       # 2.05 deg: a 5 mm-thick skin leaves some play
+    assert err(sk) == pytest.approx(8.0, abs=1e-6)                     # the input is not changed
+    for b in sk.names:
+        if b not in hand:
+            np.testing.assert_array_equal(out.bones[b].bone_to_world, sk.bones[b].bone_to_world)
+    # a skin 300 mm away: the hand is not under it, nothing is fitted
+    far = Mesh(skin.vertices + [300.0, 0.0, 0.0], skin.faces, sk.world)
+    out2, report2 = pose_inside_skin(sk, far, ("carpals_r",))
+    assert report2["carpals_r"]["applied"] == 0.0 and report2["carpals_r"]["inside_before"] < 0.5
+    np.testing.assert_array_equal(out2.bones["ray2_r"].bone_to_world, sk.bones["ray2_r"].bone_to_world)
+    with pytest.raises(ValueError, match="max_deg"):
+        pose_inside_skin(sk, skin, max_deg=0.0)
