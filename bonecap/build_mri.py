@@ -45,9 +45,11 @@ from bonecap.io import load_yaml
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
 from bonecap.parallel import Pending, default_workers, fork_map, fork_start
+from bonecap.skeleton.kinematics import subtree as _subtree
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
-           "load_seeds", "build_from_mri", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin", "reframe_subject"]
+           "load_seeds", "build_from_mri", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
+           "reframe_subject"]
 
 #: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
 MODEL_TO_LPS = np.array([[0.0, 0.0, -1.0, 0.0],
@@ -151,14 +153,6 @@ def _covers_whole_body(vols: list[Volume], bodies: list[np.ndarray]) -> bool:
         return float(area[k])
 
     return extreme(vols[0], areas[0], True) < 0.15 * median and extreme(vols[-1], areas[-1], False) < 0.15 * median
-
-
-def _subtree(skeleton: Skeleton, root: str) -> list[str]:
-    out = [root]
-    for name, b in skeleton.bones.items():
-        if b.parent in out and name not in out:
-            out.append(name)
-    return out
 
 
 def _rotate_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, R: np.ndarray) -> None:
@@ -1239,7 +1233,7 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
         ``shallow_after`` (fractions of the surface inside the skin, and less than
         ``margin_mm`` under it) and ``applied`` (1.0 or 0.0).
     """
-    import copy
+    import dataclasses
 
     from scipy import ndimage
     from scipy.optimize import least_squares
@@ -1250,8 +1244,10 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
 
     if not (margin_mm >= 0 and max_deg > 0 and 0 <= min_inside <= 1 and voxel_mm > 0 and prior >= 0):
         raise ValueError(f"pose_inside_skin: margin_mm >= 0, max_deg > 0, min_inside in [0, 1], voxel_mm > 0 and "
-                         f"prior >= 0 expected, got {margin_mm!r}, {max_deg!r}, {min_inside!r}, {voxel_mm!r}, {prior!r}")
-    out_sk = copy.deepcopy(skeleton)
+                         f"prior >= 0 expected, got {margin_mm!r}, {max_deg!r}, {min_inside!r}, {voxel_mm!r}, "
+                         f"{prior!r}")
+    # a new skeleton sharing the bones it does not turn (their meshes are large; nothing else changes)
+    out_sk = Skeleton(bones=dict(skeleton.bones), world=skeleton.world, metadata=dict(skeleton.metadata))
     report: dict[str, dict[str, float]] = {}
     for root in roots:
         if root not in skeleton.bones or skeleton.bones[root].parent is None:
@@ -1293,7 +1289,11 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
         rep["turn_deg"] = round(float(np.degrees(np.linalg.norm(x))), 2)
         rep["shallow_after"] = round(float(np.mean(depth(turned(x)) < margin_mm)), 3)
         if rep["turn_deg"] <= max_deg and rep["shallow_after"] < rep["shallow_before"]:
-            _rotate_about(out_sk, _subtree(skeleton, root), centre, Rotation.from_rotvec(x).as_matrix())
+            turned_bones = _subtree(skeleton, root)
+            for b in turned_bones:
+                out_sk.bones[b] = dataclasses.replace(skeleton.bones[b],
+                                                      bone_to_world=skeleton.bones[b].bone_to_world.copy())
+            _rotate_about(out_sk, turned_bones, centre, Rotation.from_rotvec(x).as_matrix())
             rep["applied"] = 1.0
     return out_sk, report
 

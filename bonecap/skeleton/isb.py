@@ -375,6 +375,8 @@ def malleolar_frames(skeleton: Skeleton, turns: dict[str, float], measured=()) -
     """
     from scipy.spatial.transform import Rotation
 
+    from bonecap.skeleton.kinematics import subtree
+
     measured = set(measured)
     out: dict[str, np.ndarray] = {}
     for tib, deg in turns.items():
@@ -389,11 +391,7 @@ def malleolar_frames(skeleton: Skeleton, turns: dict[str, float], measured=()) -
         fib = "fibula" + tib[len("tibia"):]
         if fib in skeleton.bones and _close(skeleton.bones[fib].bone_to_world, T, 0.05, 0.05):
             out[fib] = T_new.copy()
-        below = [n for n, b in skeleton.bones.items() if b.parent == tib and n != fib]
-        k = 0
-        while k < len(below):
-            below += [n for n, b in skeleton.bones.items() if b.parent == below[k] and n not in below]
-            k += 1
+        below = [n for c, b in skeleton.bones.items() if b.parent == tib and c != fib for n in subtree(skeleton, c)]
         for n in below:
             if n in measured:
                 continue

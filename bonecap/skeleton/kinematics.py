@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "PIVOT_JOINTS", "HINGE_JOINTS"]
+__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "subtree", "PIVOT_JOINTS", "HINGE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
@@ -91,6 +91,15 @@ def joint_groups(skeleton: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str
     for i, e in enumerate(entries):
         groups.setdefault(find(i), []).append(e)
     return list(groups.values())
+
+
+def subtree(skeleton: Skeleton, root: str) -> list[str]:
+    """``root`` and every bone below it, parents before children (the skeleton's own order)."""
+    out = [root]
+    for name, b in skeleton.bones.items():
+        if b.parent in out and name not in out:
+            out.append(name)
+    return out
 
 
 def proximal_joint(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) -> tuple[str, np.ndarray, np.ndarray]:
