@@ -497,3 +497,50 @@ def test_a_bone_placed_off_along_its_axis_slides_back():
                                 landmarks={"tip": tip0})}, world="model")
     personal, _ = warp_skeleton(sk, {"bone": target}, init=np.eye(4))
     assert np.linalg.norm(personal.bones["bone"].landmark_in_world("tip") - tip_true) < 3.0
+
+
+def test_a_bone_carried_onto_an_own_targets_joint_follows_it_past_the_shift_bound():
+    """A bone without a target hanging from a long bone that is longer than placed (a foot below a
+    tibia 12 % longer: its end 45 mm beyond the placed one, its centre half that) is carried onto the
+    warped joint, not kept where it was placed: joints placed by own targets, and by bones carried onto
+    them (the toes below the foot), are trusted to twice ``max_shift_mm``."""
+    template = pelvis_template()
+    bones = dict(template.bones)
+    Tf = template.bones["femur_r"].bone_to_world
+    end = np.array([0.0, -380.0, 0.0])                    # the femur's distal end, in its frame
+    Tc = Tf.copy()
+    Tc[:3, 3] = Tf[:3, :3] @ end + Tf[:3, 3]
+    s = trimesh.creation.icosphere(subdivisions=2)
+    bones["femur_r"] = Bone("femur_r", "hip_r", template.bones["femur_r"].mesh, Tf.copy(),
+                            joint_centres={"hip": [0, 0, 0], "knee": end})
+    bones["foot_r"] = Bone("foot_r", "femur_r", Mesh(np.asarray(s.vertices) * [20, 30, 20] + [0, -35, 0],
+                                                     np.asarray(s.faces), "foot"), Tc,
+                           joint_centres={"knee": [0, 0, 0], "mtp": [0, -70, 0]})
+    # and one more down the chain, carried onto the foot's joint (placed by a carried bone)
+    Tt = Tc.copy()
+    Tt[:3, 3] = Tc[:3, :3] @ [0.0, -70.0, 0.0] + Tc[:3, 3]
+    bones["toes_r"] = Bone("toes_r", "foot_r", Mesh(np.asarray(s.vertices) * [15, 20, 15] + [0, -20, 0],
+                                                    np.asarray(s.faces), "toes"), Tt, joint_centres={"mtp": [0, 0, 0]})
+    template = Skeleton(bones, world="model", metadata=template.metadata)
+    # the person's femora: 12 % longer along their axis, about the hip
+    targets = {}
+    for side in ("r", "l"):
+        b = template.bones[f"femur_{side}"]
+        S = np.eye(4)
+        S[1, 1] = 1.12
+        v = b.mesh.vertices @ S[:3, :3].T
+        targets[f"femur_{side}"] = Mesh(v @ b.bone_to_world[:3, :3].T + b.bone_to_world[:3, 3], b.mesh.faces, "lps")
+    # the bounds build-subject uses
+    sk, report = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", max_shift_mm=40.0,
+                               max_turn_deg=35.0)
+    assert report["bones"]["femur_r"]["source"] == "own target"
+    knee = sk.bones["femur_r"].landmark_in_world("knee")
+    assert np.linalg.norm(knee - template.bones["femur_r"].landmark_in_world("knee")) > 40.0   # past the bound
+    assert report["bones"]["foot_r"]["source"] == "neighbours"
+    np.testing.assert_allclose(sk.bones["foot_r"].landmark_in_world("knee"), knee, atol=1e-6)
+    # the foot's own surface went with it (it was not left where it was placed), and the toes with it
+    shift = sk.world_mesh("foot_r").vertices.mean(0) - template.world_mesh("foot_r").vertices.mean(0)
+    assert np.linalg.norm(shift) > 40.0
+    assert report["bones"]["toes_r"]["source"] == "neighbours"
+    np.testing.assert_allclose(sk.bones["toes_r"].landmark_in_world("mtp"), sk.bones["foot_r"].landmark_in_world("mtp"),
+                               atol=1e-6)

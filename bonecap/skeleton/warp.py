@@ -811,7 +811,14 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
         ``init`` itself for every bone (a template already placed bone by
-        bone near the targets, as build-subject does).
+        bone near the targets, as build-subject does). With ``"placed"``, a
+        bone carried by its neighbours that would move or turn beyond the
+        own targets' bounds (``max_shift_mm``, ``max_turn_deg``) is kept where
+        it was placed (source "placed template"); when every joint it is
+        carried onto was placed by an own target, or by a bone carried onto
+        such joints alone (down a chain), the shift bound is twice
+        ``max_shift_mm``: those joints passed the bounds themselves, and a
+        long bone's end moves farther than its centre.
     unseen : dict of str -> sequence of (normal (3,), offset), optional
         Per bone, half-spaces of the target world where its target was not
         looked for (``normal . p > offset``): a slice-wise search that ended
@@ -972,6 +979,9 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         Bones in ``keep`` keep their carried rotation (moved and stretched onto their joints only)."""
         carried: dict[str, np.ndarray] = {}
         kept_placed: list[str] = []
+        # joints placed by own targets, or by bones carried onto such joints alone (down a chain: the talus
+        # onto its tibia's ankle, then the calcaneus onto the talus's subtalar joint)
+        trusted = set(known)
         for name, bone in template.bones.items():
             if name in results or name in carried:
                 continue
@@ -981,11 +991,13 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 continue
             body = body_of.get(name, (name,))
             A, B = [], []
+            from_warped = True          # every joint it is carried onto is trusted
             for b in body:
                 for k in template.bones[b].joint_centres:
                     if (b, k) in joint_pos:
                         A.append(template.bones[b].landmark_in_world(k))
                         B.append(joint_pos[(b, k)])
+                        from_warped &= (b, k) in trusted
             rel = _nearest_relative(template, name, results, carried)
             # a placed template: the bone's own placed pose, corrected onto its warped joints
             M = init if start_from == "placed" or rel is None else rel
@@ -1000,14 +1012,22 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
                 R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
                 turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
-                if moved > max_shift_mm or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
+                # trusted joints (own targets passed these bounds themselves) are followed twice as far:
+                # a talus placed 45 mm off its warped tibia's ankle (a phantom whose shank is longer than
+                # the placement's) was kept there, and its foot with it, 45 mm from the ankle
+                limit = max_shift_mm * (2.0 if A and from_warped else 1.0)
+                if moved > limit or turn > max_turn_deg or _implausible(init, fake, 180.0, np.inf):
                     M = np.asarray(init, float).copy()
                     kept_placed.extend(body)
+                    from_warped = False
             for b in body:
                 carried[b] = M
             # the joints it shares only with other carried bones follow it
+            before = set(joint_pos)
             for b in body:
                 follow(b, M, joint_pos)
+            if A and from_warped:
+                trusted.update(set(joint_pos) - before)
         return carried, kept_placed
 
     carried, kept_placed = carry_all(joint_pos)
