@@ -544,3 +544,29 @@ def test_a_bone_carried_onto_an_own_targets_joint_follows_it_past_the_shift_boun
     assert report["bones"]["toes_r"]["source"] == "neighbours"
     np.testing.assert_allclose(sk.bones["toes_r"].landmark_in_world("mtp"), sk.bones["foot_r"].landmark_in_world("mtp"),
                                atol=1e-6)
+
+
+def test_two_close_joints_move_a_carried_bone_without_turning_it():
+    """Two joints 30 mm apart, one warped 5 mm across their line: over a short baseline that is a 9.5 deg
+    turn (and a stretch) of the whole bone; below ``min_baseline_mm`` the bone is only moved, onto their
+    midpoint or onto the pinned one."""
+    from bonecap.skeleton.warp import _carry
+
+    M = np.eye(4)
+    M[:3, 3] = [10.0, -4.0, 2.0]
+    A = np.array([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0]])
+    B = A + M[:3, 3] + np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    turned = _carry(M, A, B)
+    angle = np.degrees(np.arccos(np.clip((np.trace(turned[:3, :3] / np.cbrt(np.linalg.det(turned[:3, :3]))) - 1) / 2,
+                                         -1, 1)))
+    assert angle > 8.0
+    moved = _carry(M, A, B, min_baseline_mm=50.0)
+    np.testing.assert_allclose(moved[:3, :3], np.eye(3), atol=1e-12)
+    # the joints' midpoint lands on theirs
+    np.testing.assert_allclose((moved[:3, :3] @ A.T).T.mean(0) + moved[:3, 3], B.mean(0), atol=1e-9)
+    # a long baseline still turns it
+    assert not np.allclose(_carry(M, A, B, min_baseline_mm=20.0)[:3, :3], np.eye(3))
+    # pinned to the joint an own target placed (the glenohumeral centre on its humerus): that one lands
+    pinned = _carry(M, A, B, min_baseline_mm=50.0, pin=np.array([False, True]))
+    np.testing.assert_allclose(pinned[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(pinned[:3, :3] @ A[1] + pinned[:3, 3], B[1], atol=1e-9)

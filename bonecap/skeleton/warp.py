@@ -990,7 +990,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 follow(name, fixed[name], joint_pos)
                 continue
             body = body_of.get(name, (name,))
-            A, B = [], []
+            A, B, own = [], [], []
             from_warped = True          # every joint it is carried onto is trusted
             for b in body:
                 for k in template.bones[b].joint_centres:
@@ -998,11 +998,19 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                         A.append(template.bones[b].landmark_in_world(k))
                         B.append(joint_pos[(b, k)])
                         from_warped &= (b, k) in trusted
+                        own.append((b, k) in known)
             rel = _nearest_relative(template, name, results, carried)
             # a placed template: the bone's own placed pose, corrected onto its warped joints
             M = init if start_from == "placed" or rel is None else rel
+            # two joints say little of a bone's turn when they lie close together on it: less than a
+            # third of its size apart (a scapula's two, 35-40 mm on 150), it is only moved onto them
+            ext = [_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
+                   for b in body if template.bones[b].mesh is not None]
+            size = float(np.linalg.norm(np.ptp(np.concatenate(ext), axis=0))) if ext else 0.0
+            keep_rot = (len(body) > 1 and start_from == "placed") or name in keep
             M = _carry(M, np.array(A).reshape(-1, 3), np.array(B).reshape(-1, 3), rigid=len(body) > 1,
-                       keep_rotation=(len(body) > 1 and start_from == "placed") or name in keep)
+                       keep_rotation=keep_rot, min_baseline_mm=0.0 if keep_rot else size / 3.0,
+                       pin=np.array(own, bool))
             if start_from == "placed" and any(template.bones[b].mesh is not None for b in body):
                 # joints borrowed from badly warped neighbours must not throw a placed
                 # bone across the body: beyond the same bounds as an own target, keep it placed
@@ -1144,7 +1152,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
 
 
 def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
-           keep_rotation: bool = False) -> np.ndarray:
+           keep_rotation: bool = False, min_baseline_mm: float = 0.0,
+           pin: np.ndarray | None = None) -> np.ndarray:
     """Correct a relative's affine ``M`` so the template joint centres ``A`` land on their warped places ``B``.
 
     4+ points spanning 3-D: the least-squares affine (``rigid``: ``M`` followed
@@ -1158,6 +1167,15 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
     orientation than the placement did (a pelvis's two hip centres lie 1-3 deg
     off its symmetric template's left-right axis in a person; turned onto them,
     a pelvis placed within 0.1 deg came out 3 deg off on a phantom).
+    Two joints closer together than ``min_baseline_mm`` give a shift only:
+    over a short baseline a few millimetres of joint error are a large turn
+    and stretch of the whole bone (a scapula's acromioclavicular and
+    glenohumeral centres, 35-40 mm apart on a blade of 150 mm: turned 8-11
+    deg and stretched by 1.27 on phantoms whose scapulae sat as the
+    template's on the thorax). The shift puts the joints in ``pin`` (a
+    boolean mask over the points: those an own target placed, the
+    glenohumeral centre on its warped humerus) on their places, else the
+    joints' midpoint on theirs.
     """
     k = len(A)
     if k == 0:
@@ -1168,7 +1186,7 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
     C = np.eye(4)
     if k >= 3 and np.linalg.matrix_rank(MA - MA.mean(0), tol=1.0) >= 2:
         C = _kabsch(MA, B)
-    elif k >= 2:
+    elif k >= 2 and np.linalg.norm(MA[-1] - MA[0]) >= min_baseline_mm:
         u, v = MA[-1] - MA[0], B[-1] - B[0]
         stretch = float(np.linalg.norm(v) / max(np.linalg.norm(u), 1e-9))
         u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
@@ -1182,7 +1200,8 @@ def _carry(M: np.ndarray, A: np.ndarray, B: np.ndarray, rigid: bool = False,
         C[:3, :3] = C[:3, :3] @ (np.eye(3) + (stretch - 1.0) * np.outer(u, u))
         C[:3, 3] = B.mean(0) - C[:3, :3] @ MA.mean(0)
     else:
-        C[:3, 3] = B.mean(0) - MA.mean(0)
+        sel = np.ones(k, bool) if pin is None or not np.any(pin) else np.asarray(pin, bool)
+        C[:3, 3] = B[sel].mean(0) - MA[sel].mean(0)
     return C @ M
 
 
