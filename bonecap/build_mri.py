@@ -311,6 +311,10 @@ def shaft_line(vertices: np.ndarray, start: np.ndarray, end: np.ndarray,
     return out
 
 
+#: Rounds of reweighting (:func:`bonecap.build_subject.pose_to_static`'s ``robust_rounds``) when the
+#: personal skeleton is posed to the static trial with its markers where the placement rule put them.
+STATIC_ROBUST_ROUNDS = 3
+
 #: How far past its search a long bone whose line ends short of its joint may be followed
 #: (:func:`bone_seeds`' ``followed``), as a fraction of its joint-to-joint length: twice the 5-8 %
 #: by which a segment's length varies beyond stature, the template's placement error on top.
@@ -1106,7 +1110,8 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
 
         def solve_static():
             local = np.array([subject.markers[n].local for n in snames])
-            return local, pose_to_static(sk, bones, local, lab)
+            # reweighted: a few markers placed 10-25 mm off by the placement rule must not tilt a segment
+            return local, pose_to_static(sk, bones, local, lab, robust_rounds=STATIC_ROBUST_ROUNDS)
 
         local, solved = solve_static()
         guessed = shanks_unmeasured()
