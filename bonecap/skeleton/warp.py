@@ -1015,8 +1015,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 # joints borrowed from badly warped neighbours must not throw a placed
                 # bone across the body: beyond the same bounds as an own target, keep it placed
                 fake = {"T_rigid": np.eye(4), "T_affine": M, "affine_residual_mm": np.zeros(1)}
-                c = np.concatenate([_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
-                                    for b in body if template.bones[b].mesh is not None]).mean(axis=0)
+                c = np.concatenate(ext).mean(axis=0)
                 moved = float(np.linalg.norm(_apply(M, c[None])[0] - _apply(init, c[None])[0]))
                 R_M = _polar_rotation(M[:3, :3]) @ _polar_rotation(init[:3, :3]).T
                 turn = float(np.degrees(np.arccos(np.clip((np.trace(R_M) - 1) / 2, -1, 1))))
