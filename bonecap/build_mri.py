@@ -311,10 +311,6 @@ def shaft_line(vertices: np.ndarray, start: np.ndarray, end: np.ndarray,
     return out
 
 
-#: Rounds of reweighting (:func:`bonecap.build_subject.pose_to_static`'s ``robust_rounds``) when the
-#: personal skeleton is posed to the static trial with its markers where the placement rule put them.
-STATIC_ROBUST_ROUNDS = 3
-
 #: How far past its search a long bone whose line ends short of its joint may be followed
 #: (:func:`bone_seeds`' ``followed``), as a fraction of its joint-to-joint length: twice the 5-8 %
 #: by which a segment's length varies beyond stature, the template's placement error on top.
@@ -1026,9 +1022,10 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
 
     ``functional``: ``(trial, path)`` of movement trials whose knee flexion corrects the femurs' twist
     (:func:`bonecap.build_subject.knee_flexion_twist`)."""
-    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, bind_static,
-                                       capsule_static_disagreement, functional_twists, joint_consistent,
-                                       neutral_twist, pose_to_static, static_markers, turn_femurs)
+    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, STATIC_ROBUST_ROUNDS,
+                                       bind_static, capsule_static_disagreement, functional_twists,
+                                       joint_consistent, neutral_twist, pose_to_static, static_markers,
+                                       turn_femurs)
     from bonecap.markers import place_markers
     from bonecap.motion.lsq import plan_segments
     from bonecap.subject import MarkerBinding
@@ -1257,7 +1254,8 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
     for root in roots:
         if root not in skeleton.bones or skeleton.bones[root].parent is None:
             continue
-        bones = [b for b in _subtree(skeleton, root) if skeleton.bones[b].mesh is not None]
+        members = _subtree(skeleton, root)
+        bones = [b for b in members if skeleton.bones[b].mesh is not None]
         if not bones:
             continue
         V = np.concatenate([skeleton.world_mesh(b).vertices for b in bones])
@@ -1294,11 +1292,10 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
         rep["turn_deg"] = round(float(np.degrees(np.linalg.norm(x))), 2)
         rep["shallow_after"] = round(float(np.mean(depth(turned(x)) < margin_mm)), 3)
         if rep["turn_deg"] <= max_deg and rep["shallow_after"] < rep["shallow_before"]:
-            turned_bones = _subtree(skeleton, root)
-            for b in turned_bones:
+            for b in members:
                 out_sk.bones[b] = dataclasses.replace(skeleton.bones[b],
                                                       bone_to_world=skeleton.bones[b].bone_to_world.copy())
-            _rotate_about(out_sk, turned_bones, centre, Rotation.from_rotvec(x).as_matrix())
+            _rotate_about(out_sk, members, centre, Rotation.from_rotvec(x).as_matrix())
             rep["applied"] = 1.0
     return out_sk, report
 

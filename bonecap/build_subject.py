@@ -99,6 +99,9 @@ def _local(T: np.ndarray, p: np.ndarray) -> np.ndarray:
 STATIC_MAX_SWEEPS = 5000
 #: Converged: no segment moved by more than this (mm, at its origin or 100 mm from it) in a sweep.
 STATIC_TOL_MM = 1e-3
+#: Rounds of reweighting (:func:`pose_to_static`'s ``robust_rounds``) when a personal skeleton is posed to
+#: the static trial with its markers where the placement rule put them (the MRI path).
+STATIC_ROBUST_ROUNDS = 3
 
 
 def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np.ndarray,
