@@ -188,6 +188,24 @@ def test_pig_midline_markers_on_the_generic_skeleton_stay_on_the_midline():
         assert np.linalg.norm(d) == pytest.approx(ms.markers[n].offset_mm), n
         assert abs(d[2]) < 1e-6 * ms.markers[n].offset_mm, (n, d)
 
+    # The trunk's markers over a process tip or a notch leave it straight back (C7, T10, SACR, PSIS)
+    # or straight forward (CLAV, STRN, ASIS) in the bone frame, as the manual places them over the
+    # landmark: the surface normal there is ill-conditioned -- on the template the xiphoid's points
+    # down the abdomen and the jugular notch's up into the neck, and on phantom subjects these
+    # normals lay 7-66 deg from the template's.
+    back, front = ["C7", "T10", "SACR", "LPSI", "RPSI"], ["CLAV", "STRN", "LASI", "RASI"]
+    placed = place_markers(ms, sk, back + front)
+    for n in back + front:
+        b = sk.bones[ms.markers[n].bone]
+        d = b.bone_to_world[:3, :3].T @ (placed[n] - b.landmark_in_world(ms.markers[n].landmark))
+        assert np.allclose(d / np.linalg.norm(d), [-1.0 if n in back else 1.0, 0.0, 0.0], atol=1e-9), (n, d)
+    from bonecap.markers import _nearest_surface_normals
+
+    st = sk.bones["sternum"]
+    n_px, n_ij = _nearest_surface_normals(st.mesh.vertices, st.mesh.faces,
+                                          np.array([st.landmarks["xiphoid"], st.landmarks["jugular_notch"]]))
+    assert n_px[1] < -0.7 and n_ij[1] > 0.7, (n_px, n_ij)
+
 
 def test_surface_extreme_with_the_seed_inside_a_thick_bone():
     """A seed on a shaft's axis with no vertex within the radius: the most lateral point at the

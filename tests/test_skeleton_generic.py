@@ -482,3 +482,34 @@ def test_the_built_template_is_cached_keyed_and_rebuilt_when_unreadable(tmp_path
     assert template_cache_dir() is None
     load_template("default", bones=["femur_r"])
     assert len(list((tmp_path / "c").glob("*"))) == 2
+
+
+def test_a_column_landmark_stays_over_its_seed_when_a_flat_plate_tilts():
+    """The acromion's rule: the highest point of a nearly flat plate within a ball jumps from edge
+    to edge with a degree of tilt (the acromion landmark had moved 9-10 mm between phantom seeds
+    whose scapulae were alike within 1-2 mm); a column rule takes the outer surface's vertex over
+    the seed, which a tilt does not move."""
+    from types import SimpleNamespace
+
+    from bonecap.skeleton.generic import _place_landmarks, _Rule
+
+    g = np.arange(-20.0, 20.01, 0.5)
+    gx, gz = np.meshgrid(g, g)
+    top = np.c_[gx.ravel(), np.zeros(gx.size), gz.ravel()]
+    plate = np.vstack([top, top - [0.0, 6.0, 0.0]])           # upper and lower surfaces, 6 mm thick
+    seed = np.array([2.0, 3.0, 1.0])
+    found = {}
+    for deg in (-1.0, 1.0):
+        a = np.radians(deg)
+        R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        V = plate @ R.T
+        for column in (False, True):
+            d = SimpleNamespace(rules=[_Rule("top", seed, np.array([0.0, 1.0, 0.0]), 9.0, column=column)],
+                                landmarks={})
+            _place_landmarks(d, V)
+            found[deg, column] = d.landmarks["top"]
+    assert np.linalg.norm(found[1.0, False] - found[-1.0, False]) > 10.0      # the ball: edge to edge
+    for deg in (-1.0, 1.0):
+        p = found[deg, True]
+        assert np.hypot(p[0] - seed[0], p[2] - seed[2]) < 0.6, p             # over the seed
+        assert p[1] > -0.5, p                                                 # on the upper surface

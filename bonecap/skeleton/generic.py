@@ -321,12 +321,16 @@ def _plate_from_grid(mids: np.ndarray, half: np.ndarray, res: float) -> Plate:
 @dataclass
 class _Rule:
     """A landmark: the surface vertex within ``radius`` of ``seed`` that lies furthest
-    along ``direction`` (restricted to the mid-sagittal plane when ``midline``)."""
+    along ``direction`` (restricted to the mid-sagittal plane when ``midline``; with
+    ``column``, within ``radius`` of the line through ``seed`` along ``direction``: the
+    surface point over the seed, for a landmark on a nearly flat surface, whose
+    furthest point within a ball jumps from edge to edge with a degree of tilt)."""
     name: str
     seed: np.ndarray
     direction: np.ndarray
     radius: float = 12.0
     midline: bool = False
+    column: bool = False
 
 
 @dataclass(eq=False)
@@ -1314,7 +1318,10 @@ def _scapula(c: _Ctx, L) -> _Draft:
     ts = S(*sd["trigonum_spinae"])
     ai = S(*sd["inferior_angle"])
     rules = [
-        _Rule("acromion", L["ac"] + np.array([4.0, 4.0, 8.0]) * w, Y, 9 * w),
+        # the top of the acromion over a point beside the acromioclavicular joint (PiG SHO): the plate is
+        # nearly flat, and its highest point within a ball (radius 9 mm) had jumped 9-10 mm between its
+        # front and back edges from one phantom seed to the next, the scapulae otherwise alike within 1-2 mm
+        _Rule("acromion", L["ac"] + np.array([4.0, 4.0, 8.0]) * w, Y, 3 * w, column=True),
         _Rule("acromial_angle", aa, unit(-X + 0.8 * Z - 0.3 * Y), 10 * w),
         _Rule("inferior_angle", ai, -Y, 10 * w),
         _Rule("spine_root", ts, e_m, 8 * w),
@@ -1713,18 +1720,33 @@ def _mesh_draft(d: _Draft) -> None:
     _cache_put(key, (d.V, d.F, d.Vi, d.Fi, dict(d.landmarks)))
 
 
+#: A column rule's landmark: among the column's vertices within this of its extreme (mm, along the
+#: rule's direction: the outer surface, not the underside), the one nearest the column's axis.
+COLUMN_SURFACE_MM = 1.0
+
+
 def _place_landmarks(d: _Draft, dense: np.ndarray) -> None:
     """Each rule's extreme surface point, taken on the dense (undecimated) surface so it
     does not depend on where decimation left vertices; among near-ties (within 0.3 mm
-    along the direction) the vertex closest to their mean."""
+    along the direction) the vertex closest to their mean. A column rule's point is the
+    outer surface's vertex nearest the column's axis (:data:`COLUMN_SURFACE_MM`)."""
     for r in d.rules:
         V = dense
         if r.midline:
             near = np.abs(V[:, 2]) < 2.0
             if np.count_nonzero(near) > 3:
                 V = V[near]
-        best = surface_extreme(V, r.seed, r.direction, r.radius)
         dn = unit(r.direction)
+        if r.column:
+            rel = V - r.seed
+            off_axis = np.linalg.norm(rel - np.outer(rel @ dn, dn), axis=1)
+            if np.any(off_axis <= r.radius):
+                along = rel @ dn
+                inside = off_axis <= r.radius
+                outer = inside & (along >= along[inside].max() - COLUMN_SURFACE_MM)
+                d.landmarks[r.name] = V[np.flatnonzero(outer)[np.argmin(off_axis[outer])]].copy()
+                continue
+        best = surface_extreme(V, r.seed, r.direction, r.radius)
         cand = V[np.linalg.norm(V - best, axis=1) < 3.0]
         ties = cand[(best - cand) @ dn < 0.3]
         p = best
@@ -1795,7 +1817,7 @@ def _draft_key(d: _Draft) -> str:
         h.update(op.encode())
         _hash_obj(h, [k, prims])
     for r in d.rules:
-        _hash_obj(h, [r.name, r.seed, r.direction, r.radius, r.midline])
+        _hash_obj(h, [r.name, r.seed, r.direction, r.radius, r.midline, r.column])
     if d.thickness is not None:
         lo, hi = d.builder.bounds()
         g = [np.linspace(lo[k], hi[k], 5) for k in range(3)]
