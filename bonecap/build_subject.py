@@ -145,17 +145,14 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
     if robust_rounds < 0:
         raise ValueError(f"robust_rounds must be >= 0, got {robust_rounds}")
     sweeps = dict(n_sweeps=STATIC_MAX_SWEEPS, tol_mm=STATIC_TOL_MM) if converge else {}
-    index = {n: i for i, n in enumerate(skeleton.names)}
-    rows = np.array([index[b] for b in marker_bones], int)
-    local = np.asarray(marker_local, float)
     weights = None
     for _ in range(robust_rounds + 1):
-        motion = solve_lsq(skeleton, marker_bones, local, static_lab[None], weights=weights, max_gap_frames=0,
-                           **sweeps)
+        motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], weights=weights,
+                           max_gap_frames=0, **sweeps)
         T = motion.transforms[0]
         if not robust_rounds:
             break
-        r = np.linalg.norm(np.einsum("mij,mj->mi", T[rows, :3, :3], local) + T[rows, :3, 3] - static_lab, axis=1)
+        r = motion.residuals[0]           # each marker's distance from its solved place (NaN: unsolved)
         ok = np.isfinite(r)
         if not ok.any():
             break

@@ -1739,10 +1739,10 @@ def _place_landmarks(d: _Draft, dense: np.ndarray) -> None:
         dn = unit(r.direction)
         if r.column:
             rel = V - r.seed
-            off_axis = np.linalg.norm(rel - np.outer(rel @ dn, dn), axis=1)
-            if np.any(off_axis <= r.radius):
-                along = rel @ dn
-                inside = off_axis <= r.radius
+            along = rel @ dn
+            off_axis = np.linalg.norm(rel - np.outer(along, dn), axis=1)
+            inside = off_axis <= r.radius
+            if np.any(inside):
                 outer = inside & (along >= along[inside].max() - COLUMN_SURFACE_MM)
                 d.landmarks[r.name] = V[np.flatnonzero(outer)[np.argmin(off_axis[outer])]].copy()
                 continue
