@@ -14,7 +14,9 @@
    slices, watertight, smoothed, decimated.
 6. **Personal skeleton** (:mod:`bonecap.skeleton.warp`): the template warped
    onto the extracted bones (affine + Gaussian RBF); bones the MRI missed come
-   from their neighbours' warps; the skull from the head's skin.
+   from their neighbours' warps; the skull from the head's skin; the
+   vertebrae between the pelvis and the skull put on the discs the stations
+   show along the column (:mod:`bonecap.segmentation.spine`).
 7. **Markers**: each marker on the personal skin over its landmark; an
    MRI-visible capsule found near it (centre one marker-minus-capsule radius
    out along the skin normal) replaces the guess; a hand the scan did not
@@ -695,6 +697,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     skull_A, skull_report = fit_skull_to_skin(posed, skin) if "skull" not in targets else (np.eye(4), None)
     skull_fixed = {n: skull_A for n in ("skull", "mandible") if n in posed.bones and n not in targets} \
         if skull_report is not None and skull_report["used"] else None
+    spine_qc: dict[str, Any] = {}
     if targets:
         # a user's label map says nothing of where it was looked for: no cut
         cut = unseen_ends(targets, seed_map, vols, margin_mm=seg_settings.get("margin_mm", 20.0)) \
@@ -703,7 +706,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
                                               max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed,
-                                              unseen=cut)
+                                              unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None)
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly
@@ -784,7 +787,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     if forearm_report is not None:
         report["forearm"] = forearm_report
     qc_data = {"vols": vols, "pieces": pieces if labels is None else [], "ids": ids, "extracted": extracted,
-               "skin": skin, "bodies": bodies}
+               "skin": skin, "bodies": bodies, "spine": spine_qc}
 
     def qc(folder: Path) -> None:
         from bonecap.qc import write_build_qc
@@ -894,6 +897,16 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
         if cuts:
             out[name] = cuts
     return out
+
+
+def _spine_from_discs(vols: list[Volume], qc: dict | None = None):
+    """The warp's ``refine_chain``: the vertebrae between the pelvis and the skull put on the discs the
+    stations show (:func:`bonecap.segmentation.spine.spine_levels`); ``qc`` gets its profile."""
+    from bonecap.segmentation.spine import is_disc_joint, spine_levels
+
+    def refine(joint_bones: list[list[str]], points: np.ndarray):
+        return spine_levels(vols, points, [is_disc_joint(b) for b in joint_bones], profile_out=qc)
+    return refine
 
 
 def _plausible_targets(template: Skeleton, extracted: dict[str, Mesh], strict: bool = True) -> dict[str, Mesh]:

@@ -6,6 +6,8 @@
 - ``qc/personal_skeleton_front.png`` / ``_side.png``: the personal skeleton.
 - ``qc/warp_residuals.png``: per bone, the warp's residual at its feature
   points and the extracted-vs-personal fit.
+- ``qc/spine_levels.png``: the MRI along the spinal column, its dark discs,
+  and where the vertebrae's joints were put on them.
 """
 
 from __future__ import annotations
@@ -133,4 +135,30 @@ def write_build_qc(qc_dir: Path, subject, data: dict[str, Any], report: dict[str
             fig.savefig(tmp, dpi=100, format="png")
         plt.close(fig)
         out.append(p)
+    if data.get("spine"):
+        out.append(spine_levels_plot(qc_dir / "spine_levels.png", data["spine"]))
     return out
+
+
+def spine_levels_plot(path: Path, prof: dict[str, Any]) -> Path:
+    """The profile along the spinal column with its dark dips, where the warp's spread put the discs and
+    where they were matched (:func:`bonecap.segmentation.spine.spine_levels`'s ``profile_out``)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(12, 3.2))
+    s, v = np.asarray(prof["s"]), np.asarray(prof["values"])
+    ax.plot(s, v, color="0.3", lw=1, label="MRI along the column")
+    lo, hi = np.nanmin(v), np.nanmax(v)
+    for i, x in enumerate(prof["dips"]):
+        ax.axvline(x, color="tab:blue", lw=0.6, ls=":", label="dark dips" if i == 0 else None)
+    e, d = np.asarray(prof["expected"]), np.asarray(prof["matched"])
+    ax.plot(e, np.full(len(e), lo), "v", color="tab:red", ms=5, label="discs as spread (template proportions)")
+    ok = np.isfinite(d)
+    ax.plot(e[ok] + d[ok], np.full(ok.sum(), hi), "^", color="tab:green", ms=5, label="discs matched")
+    ax.set_xlabel("arc length along the column from the lumbosacral joint (mm)")
+    ax.set_ylabel("intensity")
+    ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, 1.22))
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return path

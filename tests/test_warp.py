@@ -362,7 +362,8 @@ def test_a_chain_between_the_pelvis_and_a_fixed_skull_meets_both():
     """Vertebrae without targets between the pelvis (carried onto the femora) and a skull placed by
     other means (``fixed``: build-subject fits it to the head's skin) are spread to meet both: a spine
     3 % longer than the template's ends at the skull, each vertebra keeps its placed orientation and
-    moves in proportion to its height; without ``fixed`` the chain ends short of the skull."""
+    moves in proportion to its height; without ``fixed`` the chain ends short of the skull. With
+    ``refine_chain`` the inner joints go where it says, the ends stay; refused, the spread is kept."""
     template = pelvis_template()
     T0 = template.bones["sacrum"].bone_to_world
     bones = dict(template.bones)
@@ -416,6 +417,35 @@ def test_a_chain_between_the_pelvis_and_a_fixed_skull_meets_both():
     gap = np.linalg.norm(sk2.bones[names[-1]].landmark_in_world(prev_joint) - top)
     assert gap > 0.9 * longer
 
+
+    # the image's word on the joints between the ends (build-subject: the discs the MRI shows): the chain's
+    # inner joints go where ``refine_chain`` puts them, its ends stay with the pelvis and the skull, and the
+    # vertebrae stay joined and keep their placed orientation
+    seen = {}
+
+    def refine(joint_bones, points):
+        seen["bones"], seen["points"] = joint_bones, np.array(points)
+        return np.asarray(points) + [0.0, 6.0, 0.0], {"used": True}
+    sk3, report3 = warp_skeleton(template, targets, init=np.eye(4), start_from="placed",
+                                 fixed={"skull": skull_map}, refine_chain=refine)
+    assert seen["bones"][0] == ["sacrum", "v0"] and seen["bones"][-1] == ["skull", names[-1]]
+    assert report3["chains"][0]["used"] and report3["chains"][0]["joints"][0] == "l5_s1"
+    for i, n in enumerate(names[1:], start=1):
+        np.testing.assert_allclose(sk3.bones[n].landmark_in_world(f"v{i - 1}_top"), seen["points"][i] + [0, 6, 0],
+                                   atol=1e-6)
+        np.testing.assert_allclose(sk3.bones[n].landmark_in_world(f"v{i - 1}_top"),
+                                   sk3.bones[names[i - 1]].landmark_in_world(f"v{i - 1}_top"), atol=1e-6)
+        move = sk3.bones[n].bone_to_world @ np.linalg.inv(template.bones[n].bone_to_world)
+        np.testing.assert_allclose(move[:3, :3], np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(sk3.bones[names[0]].landmark_in_world("l5_s1"),
+                               sk.bones[names[0]].landmark_in_world("l5_s1"), atol=1e-9)
+    np.testing.assert_allclose(sk3.bones[names[-1]].landmark_in_world(prev_joint),
+                               sk.bones[names[-1]].landmark_in_world(prev_joint), atol=1e-9)
+    # refused (None): the linear spread, exactly
+    sk4, report4 = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", fixed={"skull": skull_map},
+                                 refine_chain=lambda b, p: (None, {"used": False}))
+    for n in names:
+        np.testing.assert_array_equal(sk4.bones[n].bone_to_world, sk.bones[n].bone_to_world)
 
 def _apply_map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return T[:3, :3] @ p + T[:3, 3]

@@ -1,3 +1,4 @@
 """MRI segmentation, slice by slice (Kojima et al.): the body and its skin (:mod:`.skin`), long bones by
 the cortical-edge rule (:mod:`.cortical`), other bones by the density-threshold rule (:mod:`.density`),
-and the per-bone driver that labels every bone of a station from its seeds (:mod:`.bones`)."""
+the per-bone driver that labels every bone of a station from its seeds (:mod:`.bones`), MRI-visible
+capsules (:mod:`.capsules`) and the discs along the spinal column (:mod:`.spine`)."""

@@ -718,7 +718,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   rotation_prior: float = 1e-3, world: str = "lps", seed: int = 0,
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
-                  rigid_bodies=None, fixed=None, unseen=None) -> tuple[Skeleton, dict[str, Any]]:
+                  rigid_bodies=None, fixed=None, unseen=None,
+                  refine_chain=None) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -807,6 +808,14 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         end, then the mismatch at the fixed bone is spread along it linearly
         in arc length over its joints and the chain is carried again, so a
         spine longer or shorter than the template's proportions meets both ends.
+    refine_chain : callable, optional
+        ``refine_chain(joint_bones, points) -> (points or None, report)``: given
+        each joint of such a chain (bottom to top) as the names of the bones
+        it joins and the joints where the linear spread put them (world),
+        returns better places for them (build-subject: the discs the MRI shows,
+        :func:`bonecap.segmentation.spine.spine_levels`), or None to keep the
+        spread. The first and last joints stay with the anchor and the fixed
+        bone. Its reports are the warp report's ``chains``.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -1046,6 +1055,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     # rotations they were carried with: the spread is a smooth shift, and turning each vertebra onto
     # its shifted joints tilted them by its slope (0.2 deg on a phantom whose vertebrae were right).
     chains = _chains_to_fixed(template, fixed, results, body_of, known, group_of)
+    chain_reports = []
     if chains:
         seeded = dict(known)
         for chain, _ in chains:
@@ -1054,10 +1064,17 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
             top = _apply(fixed[top_bone], template.bones[top_bone].landmark_in_world(top_joint)[None])[0]
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
             frac = arc / max(arc[-1], 1e-9)
+            spread = pts + frac[:, None] * (top - pts[-1])
+            if refine_chain is not None:
+                # the image's own word on where the joints between the ends lie (the discs the MRI shows)
+                moved, rep = refine_chain([sorted({b for b, _ in g}) for g in chain], spread)
+                chain_reports.append({"joints": [g[0][1] for g in chain], **rep})
+                if moved is not None:
+                    spread[1:-1] = np.asarray(moved, float)[1:-1]
             # the bottom joint is left to its anchor (carried again the same way); the others move
-            for g, p, f in zip(chain[1:], pts[1:], frac[1:]):
+            for g, p in zip(chain[1:], spread[1:]):
                 for e in g:
-                    seeded[e] = p + f * (top - pts[-1])
+                    seeded[e] = p
         joint_pos = seeded
         carried, kept_placed = carry_all(joint_pos, frozenset(b for _, bones in chains for b in bones))
 
@@ -1147,6 +1164,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     report = {"bones": report_bones,
               "transforms": {n: bone_affine(n).tolist() for n in template.bones},
               "init": init.tolist(), "seconds": time.perf_counter() - t_start}
+    if chain_reports:
+        report["chains"] = chain_reports
     return out, report
 
 
