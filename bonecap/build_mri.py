@@ -905,7 +905,10 @@ def _spine_from_discs(vols: list[Volume], qc: dict | None = None):
     from bonecap.segmentation.spine import is_disc_joint, spine_levels
 
     def refine(joint_bones: list[list[str]], points: np.ndarray):
-        return spine_levels(vols, points, [is_disc_joint(b) for b in joint_bones], profile_out=qc)
+        try:
+            return spine_levels(vols, points, [is_disc_joint(b) for b in joint_bones], profile_out=qc)
+        except ValueError as exc:      # an odd chain (two joints at one place): the spread stays, said why
+            return None, {"used": False, "reason": str(exc)}
     return refine
 
 

@@ -156,6 +156,11 @@ def spine_levels_plot(path: Path, prof: dict[str, Any]) -> Path:
     ax.plot(e[ok] + d[ok], np.full(ok.sum(), hi), "^", color="tab:green", ms=5, label="discs matched")
     ax.set_xlabel("arc length along the column from the lumbosacral joint (mm)")
     ax.set_ylabel("intensity")
+    rep = prof.get("report") or {}
+    verdict = "the vertebrae moved onto the matched discs" if rep.get("used") else \
+        f"not used: {rep.get('reason', 'refused')} (the template's proportions kept)"
+    ax.set_title(f"spine levels: {rep.get('matched', 0)} of {rep.get('discs', len(e))} discs matched; {verdict}",
+                 fontsize=9, pad=28)
     ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, 1.22))
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -152,3 +152,25 @@ def test_spine_levels_refuses_thick_slices_and_a_slipped_level(monkeypatch):
     monkeypatch.setattr(spine, "match_discs", lambda s, v, e, **kw: (np.full(len(e), 3.0), np.asarray(e) + 3.0))
     out, rep = spine_levels(vols, _on_arc(discs), [True] * len(discs))
     assert rep["used"] and np.allclose(rep["displacement_mm"][1:-1], 3.0)
+
+
+def test_the_qc_picture_says_whether_the_levels_were_used(tmp_path):
+    """qc/spine_levels.png: the profile, the dips, the discs as spread and as matched; the title says
+    how many discs were matched and, when refused, why (the template's proportions kept)."""
+    from PIL import Image
+
+    from bonecap.qc import spine_levels_plot
+
+    discs = _discs()
+    vols = _column_volumes(discs)
+    for kw, word in (({}, "moved onto"), ({"min_matched": 1.01}, "not used")):
+        prof = {}
+        out, rep = spine_levels(vols, _on_arc(discs), [True] * len(discs), profile_out=prof, **kw)
+        assert prof["report"] is rep and (out is not None) == rep["used"]
+        assert rep["used"] == (word == "moved onto")
+        p = spine_levels_plot(tmp_path / f"s{len(kw)}.png", prof)
+        w, h = Image.open(p).size
+        assert w > 2 * h                    # a wide strip along the column
+        px = np.asarray(Image.open(p).convert("RGB"), float)
+        green = (px[..., 1] > 100) & (px[..., 0] < 80) & (px[..., 2] < 80)
+        assert green.sum() > 50             # the matched discs are drawn

@@ -287,7 +287,8 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
     profile_out : dict, optional
         Filled with what a QC picture shows: ``s``, ``values`` (the profile),
         ``dips``, ``expected`` (the discs' arc lengths as given), ``matched``
-        (their displacements, NaN unmatched) and ``arc`` (every joint's).
+        (their displacements, NaN unmatched), ``arc`` (every joint's) and
+        ``report`` (the returned report).
     **kwargs
         Passed to :func:`match_discs` (and ``radius_mm`` to
         :func:`profile_along_curve`).
@@ -311,6 +312,8 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
         raise ValueError(f"points (n, 3) and is_disc (n,) must match, got {P.shape} and {flags.shape}")
     radius = kwargs.pop("radius_mm", 6.0)
     report: dict[str, Any] = {"discs": int(flags.sum()), "used": False}
+    if profile_out is not None:
+        profile_out["report"] = report            # the same dict: what it says at the end
     if flags.sum() < 3:
         report["reason"] = "fewer than 3 discs in the chain"
         return None, report
@@ -329,7 +332,8 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
         report["reason"] = "the stations do not cover the whole column"
         return None, report
     if matched.sum() < min_matched * flags.sum():
-        report["reason"] = f"{matched.sum()} of {flags.sum()} discs found in the image"
+        report["reason"] = (f"{matched.sum()} of {flags.sum()} discs found in the image "
+                            f"(at least {min_matched:.0%} needed)")
         return None, report
     ad = arc[flags][matched]
     dd = d[matched]
