@@ -151,7 +151,7 @@ def profile_along_curve(volumes: Sequence[Volume], points, *, radius_mm: float =
 
 
 def _dips(s: np.ndarray, values: np.ndarray, *, baseline_mm: float, prominence: float, min_spacing_mm: float):
-    """Positions of the profile's dark dips (relative to a running median), and the relative profile."""
+    """Positions (arc length) of the profile's dark dips, relative to a running median."""
     ok = np.isfinite(values)
     step = float(np.median(np.diff(s)))
     filled = np.interp(s, s[ok], values[ok])
@@ -169,7 +169,7 @@ def _dips(s: np.ndarray, values: np.ndarray, *, baseline_mm: float, prominence: 
         depth = rel[lo:hi].max() - rel[lo:hi]
         wgt = np.clip(depth - 0.5 * depth.max(), 0.0, None)
         pos.append(float(np.sum(wgt * s[lo:hi]) / wgt.sum()) if wgt.sum() > 0 else float(s[i]))
-    return np.array(pos), rel
+    return np.array(pos)
 
 
 def match_discs(s, values, expected, *, prominence: float = 0.1, min_spacing_mm: float = 8.0,
@@ -219,7 +219,7 @@ def match_discs(s, values, expected, *, prominence: float = 0.1, min_spacing_mm:
         raise ValueError("expected must be a non-empty increasing sequence of arc lengths")
     if not np.any(np.isfinite(values)):
         return np.full(len(e), np.nan), np.zeros(0)
-    m, _ = _dips(s, values, baseline_mm=baseline_mm, prominence=prominence, min_spacing_mm=min_spacing_mm)
+    m = _dips(s, values, baseline_mm=baseline_mm, prominence=prominence, min_spacing_mm=min_spacing_mm)
     K, J = len(e), len(m)
     out = np.full(K, np.nan)
     if J == 0:
@@ -251,8 +251,8 @@ def match_discs(s, values, expected, *, prominence: float = 0.1, min_spacing_mm:
 
 def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float = 30.0,
                  min_matched: float = 0.7, max_displacement_mm: float = 40.0, keep_ends: bool = True,
-                 max_step: float = 0.3, max_slice_mm: float = 8.0, profile_out: dict | None = None,
-                 **kwargs) -> tuple[np.ndarray | None, dict[str, Any]]:
+                 max_step: float = 0.3, max_slice_mm: float = 8.0, radius_mm: float = 6.0,
+                 profile_out: dict | None = None, **kwargs) -> tuple[np.ndarray | None, dict[str, Any]]:
     """The spine chain's joints moved along the column onto the discs the MRI shows.
 
     Parameters
@@ -289,9 +289,10 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
         ``dips``, ``expected`` (the discs' arc lengths as given), ``matched``
         (their displacements, NaN unmatched), ``arc`` (every joint's) and
         ``report`` (the returned report).
+    radius_mm : float
+        The disc across the column that is averaged (:func:`profile_along_curve`).
     **kwargs
-        Passed to :func:`match_discs` (and ``radius_mm`` to
-        :func:`profile_along_curve`).
+        Passed to :func:`match_discs`.
 
     Returns
     -------
@@ -310,7 +311,6 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
     flags = np.asarray(is_disc, bool)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) != len(flags):
         raise ValueError(f"points (n, 3) and is_disc (n,) must match, got {P.shape} and {flags.shape}")
-    radius = kwargs.pop("radius_mm", 6.0)
     report: dict[str, Any] = {"discs": int(flags.sum()), "used": False}
     if profile_out is not None:
         profile_out["report"] = report            # the same dict: what it says at the end
@@ -321,7 +321,7 @@ def spine_levels(volumes: Sequence[Volume], points, is_disc, *, smooth_mm: float
     if thick > max_slice_mm:
         report["reason"] = f"slices of {thick:.1f} mm are too thick to show the discs (at most {max_slice_mm:g})"
         return None, report
-    s, values, arc = profile_along_curve(volumes, P, radius_mm=radius)
+    s, values, arc = profile_along_curve(volumes, P, radius_mm=radius_mm)
     d, dips = match_discs(s, values, arc[flags], **kwargs)
     matched = np.isfinite(d)
     if profile_out is not None:
