@@ -325,9 +325,15 @@ FOLLOW_FRACTION = 0.15
 #: and a phantom's ulna, followed, took twice the carpal voxels it had taken before (seed 1: 110 -> 222).
 FOLLOWED_ENDS = ("tibia", "fibula")
 
+#: The long bones whose proximal end is a head in a density-rule bone's socket, followed past the
+#: search into it (:func:`bone_seeds`' ``heads``; :func:`bonecap.segmentation.bones._follow_head`): the
+#: femoral head in the acetabulum, the humeral head on the glenoid.
+FOLLOWED_HEADS = ("femur", "humerus")
+
 
 def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES,
-               margin_mm: float = 20.0, followed: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+               margin_mm: float = 20.0, followed: dict[str, float] | None = None,
+               heads: dict[str, float] | None = None) -> dict[str, np.ndarray]:
     """Seed polylines (LPS mm) of the bones to segment, from the aligned template.
 
     A long bone's seed runs from its proximal to its distal joint centre
@@ -362,7 +368,9 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
     :data:`FOLLOWED_ENDS` with how far (mm, :data:`FOLLOW_FRACTION` of the
     bone's length) ``segment_bones`` may follow them past the search, slice
     by slice, while they continue and until they reach their joint
-    (:func:`bonecap.segmentation.bones._follow_distal_end`).
+    (:func:`bonecap.segmentation.bones._follow_distal_end`). ``heads`` likewise receives the
+    bones of :data:`FOLLOWED_HEADS`, whose proximal heads are followed into their sockets
+    (:func:`bonecap.segmentation.bones._follow_head`).
     """
     from bonecap.skeleton.kinematics import joint_groups
 
@@ -403,9 +411,12 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
                 own = float(((V - pts[1]) @ u).max())
                 if own > margin_mm:
                     pts[1] = pts[1] + (own - 0.5 * margin_mm) * u
+            span = float(np.linalg.norm(b.landmark_in_world(list(b.joint_centres)[far])
+                                        - b.landmark_in_world(list(b.joint_centres)[0])))
             if followed is not None and name[:-2] in FOLLOWED_ENDS:
-                followed[name] = FOLLOW_FRACTION * float(np.linalg.norm(
-                    b.landmark_in_world(list(b.joint_centres)[far]) - b.landmark_in_world(list(b.joint_centres)[0])))
+                followed[name] = FOLLOW_FRACTION * span
+            if heads is not None and name[:-2] in FOLLOWED_HEADS:
+                heads[name] = FOLLOW_FRACTION * span
             if V is not None:
                 pts = shaft_line(V, pts[0], pts[1])
         if not pts:
@@ -651,8 +662,10 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
                                 mri[0])
             posed, align_report = place_template(template, vols, bodies, top, bottom, centre_at)
             follow: dict[str, float] = {}
-            seed_map = bone_seeds(posed, np.eye(4), followed=follow)
+            heads: dict[str, float] = {}
+            seed_map = bone_seeds(posed, np.eye(4), followed=follow, heads=heads)
             seg_settings["follow_mm"] = follow
+            seg_settings["follow_head_mm"] = heads
         lap("seeds")
         bar.update()
 

@@ -677,11 +677,74 @@ def test_a_long_bone_cut_by_its_search_is_followed_to_its_joint(fat):
     assert np.array_equal(short, cut)
 
 
+def _head_in_socket_stack(seed: int = 11):
+    """A femur-like bone in an axial stack of 5 mm slices, 1 mm pixels: a shaft (outer 15 mm, marrow
+    11.5) up to a ball head (radius 22 mm, 2.5 mm cortex, centred at z = 70 mm, slice 14), and over the
+    head's upper half a socket of another bone (a cup 5-12 mm off the head: cortex, marrow, cortex)
+    that goes on upwards as a plate. Returns the Volume, the body mask and the head's centre (i, j, z)."""
+    n, K = 180, 22
+    rng = np.random.default_rng(seed)
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    r2 = np.hypot(ii - 90, jj - 90)                           # in-plane mm from the axis
+    body = r2 < 85
+    data = np.full((n, n, K), 300.0)
+    data[~body] = 0.0
+    zc = 70.0
+    for k in range(K):
+        z = 5.0 * k
+        sl = data[:, :, k]
+        r3 = np.hypot(r2, z - zc)
+        shaft = z < zc
+        sl[shaft & (r2 < 15.0) | (r3 < 22.0)] = 80.0
+        sl[shaft & (r2 < 11.5) | (r3 < 19.5)] = 900.0
+        if z > zc - 2.0:                                      # the cup, and the plate above it
+            cup = (r3 >= 27.0) & (r3 < 35.0)
+            if z > zc + 26.0:
+                cup = cup | (r2 < 35.0)
+            sl[cup] = 80.0
+            sl[cup & (r3 >= 29.5) & (r3 < 32.5) | (z > zc + 28.5) & (r2 < 32.5)] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 5.0, 1.0]))
+    return vol, np.repeat(body[:, :, None], K, axis=2), (90.0, 90.0, zc)
+
+
+def test_a_head_cut_by_its_search_is_followed_into_its_socket():
+    """The femur's line starts 25 mm below the head's centre (a template placed from the body's
+    extent is that far off): its search stops 5 mm below the centre, and the socket's density rule,
+    whose line passes through the head too, takes the head's upper half (the phantoms lost 8-26 mm
+    of their femoral and humeral heads so). Followed, the head is the femur's up to its pole, each
+    section within 15 % of the ball's; away from the ball every label stays (the socket, the plate
+    above the pole)."""
+    from bonecap.segmentation.bones import segment_bones
+
+    vol, body, (ci, cj, zc) = _head_in_socket_stack()
+    seeds = {"femur_r": np.array([[ci, cj, zc - 25.0], [ci, cj, 0.0]]),
+             "hip_r": np.array([[ci, cj, zc + 90.0], [ci, cj, zc + 28.0]])}
+    kc = int(zc / 5)
+    cut, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=20.0)
+    f_cut = (cut == ids["femur_r"]).sum(axis=(0, 1))
+    assert f_cut[kc:].sum() == 0 and f_cut[kc - 1] > 0
+    assert cut[90, 90, kc + 2] == ids["hip_r"]                   # the socket's rule took the head
+    got, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=20.0,
+                             follow_head_mm={"femur_r": 60.0})
+    f = (got == ids["femur_r"]).sum(axis=(0, 1))
+    assert np.array_equal(f[:kc], f_cut[:kc])                    # what the search found is unchanged
+    for k in range(kc, kc + 4):              # z = 70 .. 85 mm (at 90 the cap is all cortex: no marrow to track)
+        ball = np.pi * (22.0 ** 2 - (5.0 * k - zc) ** 2)
+        assert abs(f[k] - ball) <= 0.15 * ball, (k, f[k], ball)
+    assert f[kc + 5:].sum() == 0                                 # the pole is at 92 mm
+    # away from the ball (the cup, the plate above the pole) every label stays as it was
+    ii, jj, kk = np.mgrid[:180, :180, :22].astype(float)
+    away = np.sqrt((ii - ci) ** 2 + (jj - cj) ** 2 + (5.0 * kk - zc) ** 2) > 24.0
+    assert np.array_equal(got[away & (kk >= kc)], cut[away & (kk >= kc)])
+    assert got[90, 90, kc + 6] == ids["hip_r"]
+
+
 def test_only_the_ankles_long_bones_are_followed_past_their_search():
     """bone_seeds names the tibiae and fibulae (their ends at the ankle, where the talus's smaller
     section stops the track) with 15 % of their joint-to-joint length; not the radius and ulna (the
     carpals past them are as large as their ends), nor the femur and humerus (a long bone's line
-    goes on past their distal joints)."""
+    goes on past their distal joints). The femurs' and humeri's heads are followed into their sockets."""
     from bonecap.build_mri import FOLLOW_FRACTION, bone_seeds
     from bonecap.skeleton.template import load_template
 
@@ -692,7 +755,14 @@ def test_only_the_ankles_long_bones_are_followed_past_their_search():
     tib = sk.bones["tibia_r"]
     length = np.linalg.norm(tib.landmark_in_world("ankle") - tib.landmark_in_world("knee"))
     assert followed["tibia_r"] == pytest.approx(FOLLOW_FRACTION * length)
-    # the lines themselves do not depend on it
+    # the heads followed into their sockets: the femurs' and humeri's proximal ends, 15 % of their length
+    heads: dict[str, float] = {}
+    bone_seeds(sk, np.eye(4), heads=heads)
+    assert set(heads) == {"femur_r", "femur_l", "humerus_r", "humerus_l"}
+    fem = sk.bones["femur_l"]
+    assert heads["femur_l"] == pytest.approx(
+        FOLLOW_FRACTION * np.linalg.norm(fem.landmark_in_world("knee") - fem.landmark_in_world("hip")))
+    # the lines themselves do not depend on either
     assert all(np.array_equal(seeds[n], v) for n, v in bone_seeds(sk, np.eye(4)).items())
 
 

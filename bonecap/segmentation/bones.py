@@ -501,7 +501,8 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                   rules: Mapping[str, str] | None = None, progress: bool = True, margin_mm: float = 20.0,
                   options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
                   joint_zone_mm: float = 60.0, continuity: bool = True,
-                  follow_mm: Mapping[str, float] | None = None) -> tuple[np.ndarray, dict[str, int]]:
+                  follow_mm: Mapping[str, float] | None = None,
+                  follow_head_mm: Mapping[str, float] | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -557,6 +558,11 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         template ends where the template's bone does (the tibia's, short of
         the talus), and a bone longer than its template would be cut there.
         See :func:`_follow_distal_end`.
+    follow_head_mm : dict bone name -> float, optional
+        Long bones whose proximal end is a head in another bone's socket
+        (femur, humerus), followed past the search up to this far (mm) while
+        the head goes on, taking back what the socket's density rule took
+        (:func:`_follow_head`).
     joint_zone_mm : float
         Two long bones whose polylines share an end point (a joint centre:
         femur and tibia at the knee) are split at the deepest valley of their summed
@@ -694,6 +700,16 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
     if continuity:
         _keep_continuous(labels, ids, crossed, pixel_mm)
+    # the heads last: from the sections that continue the shaft (a stray section past the head would
+    # start the track in the socket's roof)
+    density_ids = [ids[n] for n in names if rule_of[n] == "density"]
+    for n, reach in (follow_head_mm or {}).items():
+        if n not in ids or rule_of[n] != "cortical" or not reach > 0 or not searched[n].any():
+            continue
+        kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
+        step = -1 if kk[-1] >= kk[0] else 1           # towards the proximal end
+        _follow_head(labels, ids[n], n, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
+                     interior, pixel_mm, opts, density_ids)
     return labels, ids
 
 
@@ -784,6 +800,86 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     return len(added_at)
 
 
+#: A head's section may grow by this factor per slice towards its equator (:func:`_follow_head`); past
+#: the equator it may not grow at all (by more than a pixel row of noise).
+_HEAD_GROW = 1.3
+_HEAD_REGROW = 1.1
+#: Past the equator a ball's sections are concentric: a section whose centre moved by more than this
+#: (mm) or a fifth of the previous section's radius is the socket's (its roof's fossa), not the head's.
+_HEAD_DRIFT_MM = 2.5
+
+
+def _follow_head(labels: np.ndarray, lid: int, name: str, step: int, max_slices: int, data: np.ndarray,
+                 smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
+                 yield_ids, *, min_overlap: float = _TRACK_MIN_OVERLAP, reach_mm: float = _TRACK_REACH_MM,
+                 window_mm: float = _TRACK_WINDOW_MM, marrow_top: float = _TRACK_MARROW_TOP) -> int:
+    """Follow a long bone's head past its proximal end, into its socket (in place); the slices added.
+
+    The search of a long bone reaches ``margin_mm`` past the joint centre of the
+    template placed on the body, which can lie 15-25 mm from the subject's (the
+    template is placed from the body's extent): the phantoms' femoral heads lost
+    their upper 8-25 mm (seeds 1, 2, 4) and seed 4's humeral heads 26 mm, and the
+    socket's density rule (the hip bone's, the scapula's) took them as its own.
+    From the bone's last section on the proximal side, each next slice's section
+    is tracked (:func:`_track_section`), on pixels that are free or held by a
+    density-rule bone (``yield_ids``), while it continues the previous one
+    (:func:`_continues`) and grows by at most :data:`_HEAD_GROW` up to the head's
+    equator and not at all past it (by at most :data:`_HEAD_REGROW`: a ball's
+    sections shrink to its pole; a larger one is the socket's roof), its centre
+    staying put past the equator (:data:`_HEAD_DRIFT_MM`). The equator may lie
+    below the start: the search's last two sections already shrinking count.
+    The track ends where the marrow ends or stops continuing (the pole); one that
+    runs to ``max_slices`` followed something else and is dropped. Run after
+    :func:`_keep_continuous`, from the sections that continue the shaft (a
+    stray section past the pole would start it in the socket's roof).
+    """
+    from skimage.morphology import disk
+
+    K = labels.shape[2]
+    sums = (labels == lid).sum(axis=(0, 1))
+    where = np.flatnonzero(sums)
+    if where.size == 0:
+        return 0
+    first = int(where.min() if step < 0 else where.max())
+    prev = labels[:, :, first] == lid
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
+    o = opts[name]
+    top = _section_marrow_top(smooth, interior, first, prev, o, marrow_top)
+    added: list[tuple[int, np.ndarray]] = []
+    # past the equator already where the search stopped (its last section smaller than the one before)
+    shrinking = 0 <= first - step < K and 0 < sums[first] < sums[first - step]
+    ended = False
+    k = first + step
+    while 0 <= k < K and len(added) < max_slices:
+        got = _track_section(labels, k, prev, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp,
+                             yield_ids)
+        if got is None:
+            ended = True
+            break
+        sec, region = got
+        n, n_prev = int(sec.sum()), int(prev.sum())
+        if n == 0 or not _continues(sec, prev, fp, _HEAD_GROW, min_overlap) or (
+                shrinking and n > _HEAD_REGROW * n_prev + 4):
+            ended = True
+            break
+        if shrinking:
+            drift = np.linalg.norm(np.argwhere(sec).mean(axis=0) - np.argwhere(prev).mean(axis=0)) * pixel_mm
+            if drift > max(_HEAD_DRIFT_MM, 0.2 * np.sqrt(n_prev / np.pi) * pixel_mm):
+                ended = True
+                break
+        shrinking = shrinking or n < n_prev
+        added.append((k, sec))
+        prev = sec
+        top = _marrow_top(smooth[:, :, k], region, marrow_top)
+        k += step
+    if added and not (ended or not 0 <= k < K):
+        return 0
+    for kk, sec in added:
+        labels[:, :, kk][sec] = lid
+    return len(added)
+
+
 def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: np.ndarray, data: np.ndarray,
                       smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
                       *, grow: float = _TRACK_GROW, min_overlap: float = _TRACK_MIN_OVERLAP,
@@ -821,10 +917,11 @@ def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: np.ndar
 
 
 def _track_section(labels: np.ndarray, k: int, prev: np.ndarray, top: float, data: np.ndarray, smooth: np.ndarray,
-                   body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, o: Mapping, win_fp: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray] | None:
+                   body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, o: Mapping, win_fp: np.ndarray,
+                   yield_ids=()) -> tuple[np.ndarray, np.ndarray] | None:
     """A long bone's section on slice ``k`` tracked from its section ``prev`` on a neighbouring slice:
-    ``(section, marrow)``, or None where no marrow lies on it. See :func:`_follow_distal_end`."""
+    ``(section, marrow)``, or None where no marrow lies on it. See :func:`_follow_distal_end`. Pixels
+    labelled with one of ``yield_ids`` count as free (:func:`_follow_head`)."""
     med, body, inner = smooth[:, :, k], body_mask[:, :, k], interior[:, :, k]
     m_slice = cortical.muscle_level(med, inner)
     if not np.isfinite(m_slice) or m_slice <= 0:
@@ -832,7 +929,7 @@ def _track_section(labels: np.ndarray, k: int, prev: np.ndarray, top: float, dat
     # the marrow lying on the previous section: the candidates within a few mm of it, so that where
     # the cortex is too thin to show (the distal tibia's subcutaneous face) the marrow is not lost
     # to the fat it touches (the whole-slice rule drops such a region with the fat)
-    free = labels[:, :, k] == 0
+    free = (labels[:, :, k] == 0) | np.isin(labels[:, :, k], list(yield_ids))
     cand = _marrow_candidates(med, body, pixel_mm, m_slice, o) & ndimage.binary_dilation(prev, win_fp) & free
     if np.isfinite(top):
         # no brighter than the marrow above: where the marrow touches fat that is brighter (T2, or fat
