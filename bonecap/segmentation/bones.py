@@ -793,11 +793,17 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     # A bone's end is its joint: the track stands only where it ended at one (or at the images' end). One
     # that ran to its limit, or lost the bone's marrow on the way, followed something else beyond the
     # bone's end (past the distal ulna the carpals, larger than its head, continue it slice after slice).
-    if added_at and not (at_joint or not 0 <= k < K):
+    return _commit_track(labels, lid, added_at, at_joint or not 0 <= k < K)
+
+
+def _commit_track(labels: np.ndarray, lid: int, added: list[tuple[int, np.ndarray]], ended: bool) -> int:
+    """Label a track's sections ``(slice, mask)`` with ``lid`` when it ended at the bone's end, else none
+    of them (a track that ran to its limit followed something else); how many slices were labelled."""
+    if added and not ended:
         return 0
-    for kk, sec in added_at:
-        labels[:, :, kk][sec] = lid
-    return len(added_at)
+    for k, sec in added:
+        labels[:, :, k][sec] = lid
+    return len(added)
 
 
 #: A head's section may grow by this factor per slice towards its equator (:func:`_follow_head`); past
@@ -873,11 +879,7 @@ def _follow_head(labels: np.ndarray, lid: int, name: str, step: int, max_slices:
         prev = sec
         top = _marrow_top(smooth[:, :, k], region, marrow_top)
         k += step
-    if added and not (ended or not 0 <= k < K):
-        return 0
-    for kk, sec in added:
-        labels[:, :, kk][sec] = lid
-    return len(added)
+    return _commit_track(labels, lid, added, ended or not 0 <= k < K)
 
 
 def _fill_single_gaps(labels: np.ndarray, lid: int, name: str, searched: np.ndarray, data: np.ndarray,
