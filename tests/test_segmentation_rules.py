@@ -680,7 +680,7 @@ def test_a_long_bone_cut_by_its_search_is_followed_to_its_joint(fat):
 def _head_in_socket_stack(seed: int = 11):
     """A femur-like bone in an axial stack of 5 mm slices, 1 mm pixels: a shaft (outer 15 mm, marrow
     11.5) up to a ball head (radius 22 mm, 2.5 mm cortex, centred at z = 70 mm, slice 14), and over the
-    head's upper half a socket of another bone (a cup 5-12 mm off the head: cortex, marrow, cortex)
+    head's upper half a socket of another bone (a cup 5-13 mm off the head: cortex, marrow, cortex)
     that goes on upwards as a plate. Returns the Volume, the body mask and the head's centre (i, j, z)."""
     n, K = 180, 22
     rng = np.random.default_rng(seed)
