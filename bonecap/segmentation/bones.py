@@ -683,15 +683,18 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
             labels[:, :, k][density.fill_holes(m) & (labels[:, :, k] == 0)] = ids[n]
     long_bones = [n for n in names if rule_of[n] == "cortical"]
     searched = {n: np.array([len(s) > 0 for s in per_slice[n]]) for n in long_bones}
-    for n, reach in (follow_mm or {}).items():
-        if n not in ids or rule_of[n] != "cortical" or not reach > 0 or not searched[n].any():
-            continue
-        kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
-        step = 1 if kk[-1] >= kk[0] else -1
+
+    def to_follow(reaches):
+        """``(bone, slice step towards its distal end, slices)`` of the searched long bones in ``reaches``."""
+        for n, reach in (reaches or {}).items():
+            if n in ids and rule_of[n] == "cortical" and reach > 0 and searched[n].any():
+                kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
+                yield n, (1 if kk[-1] >= kk[0] else -1), int(np.ceil(reach / float(sp[2])))
+
+    for n, step, slices in to_follow(follow_mm):
         where = np.flatnonzero(searched[n])
         last = int(where.max() if step > 0 else where.min())
-        _follow_distal_end(labels, ids[n], n, last, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
-                           interior, pixel_mm, opts)
+        _follow_distal_end(labels, ids[n], n, last, step, slices, data, smooth, body_mask, interior, pixel_mm, opts)
     for n in long_bones:
         _fill_single_gaps(labels, ids[n], n, searched[n], data, smooth, body_mask, interior, pixel_mm, opts)
     crossed = {n: [len(c) > 0 for c in crossing[n]] for n in long_bones}
@@ -703,13 +706,9 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     # the heads last: from the sections that continue the shaft (a stray section past the head would
     # start the track in the socket's roof)
     density_ids = [ids[n] for n in names if rule_of[n] == "density"]
-    for n, reach in (follow_head_mm or {}).items():
-        if n not in ids or rule_of[n] != "cortical" or not reach > 0 or not searched[n].any():
-            continue
-        kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
-        step = -1 if kk[-1] >= kk[0] else 1           # towards the proximal end
-        _follow_head(labels, ids[n], n, step, int(np.ceil(reach / float(sp[2]))), data, smooth, body_mask,
-                     interior, pixel_mm, opts, density_ids)
+    for n, step, slices in to_follow(follow_head_mm):
+        _follow_head(labels, ids[n], n, -step, slices, data, smooth, body_mask, interior, pixel_mm, opts,
+                     density_ids)
     return labels, ids
 
 
