@@ -25,7 +25,7 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["fork_map", "fork_start", "Pending", "default_workers", "one_blas_thread"]
+__all__ = ["fork_map", "fork_start", "fork_child", "Pending", "default_workers", "one_blas_thread"]
 
 # the jobs whose pools are alive, by id: a worker forked for job k looks its function and items up here
 # (inherited with the fork, never pickled); several can be running at once (fork_start)
@@ -148,3 +148,69 @@ def fork_map(fn: Callable[[Any], Any], items: Iterable[Any], workers: int | None
         raised raises the same exception here.
     """
     return fork_start(fn, items, workers).result()
+
+
+def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], Any]:
+    """Start ``fn()`` in one forked child process; return a ``join()`` that waits and gives its result.
+
+    The child inherits the caller's data as it is now (nothing is pickled on the way
+    in); only the result comes back, through a pipe. An exception in the child is
+    raised again by ``join()``.
+
+    Parameters
+    ----------
+    fn : callable
+        Called without arguments in the child, BLAS on one thread (the caller may
+        go on beside it); its result must be picklable.
+    daemon : bool
+        A daemonic child (default) is killed when the caller exits; a child that
+        forks workers of its own must not be one.
+
+    Returns
+    -------
+    callable
+        ``join()``.
+
+    Raises
+    ------
+    RuntimeError
+        This process cannot fork (no ``fork`` start method, or a daemonic process itself).
+    """
+    import multiprocessing as mp
+
+    try:
+        ctx = mp.get_context("fork")
+    except ValueError:
+        raise RuntimeError("no fork start method here") from None
+    if mp.current_process().daemon:
+        raise RuntimeError("daemonic processes cannot have children")
+    recv, send = ctx.Pipe(duplex=False)
+
+    def child():
+        try:
+            with one_blas_thread():
+                result = fn()
+            send.send(("ok", result))
+        except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
+            try:
+                send.send(("error", exc))
+            except Exception:  # noqa: BLE001 - an exception that does not pickle
+                send.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+        finally:
+            send.close()
+
+    proc = ctx.Process(target=child, daemon=daemon)
+    proc.start()
+    send.close()
+
+    def join():
+        try:
+            status, value = recv.recv()
+        except EOFError:
+            proc.join()
+            raise RuntimeError(f"a worker process died (exit code {proc.exitcode})") from None
+        proc.join()
+        if status == "error":
+            raise value
+        return value
+    return join

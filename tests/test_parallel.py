@@ -101,3 +101,35 @@ def test_workers_run_blas_single_threaded():
         return max((d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"), default=1)
 
     assert fork_map(blas_threads, range(2), workers=2) == [1, 1]
+
+
+def test_fork_child_returns_its_result_raises_its_error_and_may_fork_workers():
+    """fork_child runs one function in a child on a snapshot of the caller's data; its result comes
+    back, its error is raised here; a non-daemonic child may fork a pool of its own (the skeleton's
+    meshing parent does)."""
+    from bonecap.parallel import fork_child
+
+    data = {"x": np.arange(4.0)}
+    join = fork_child(lambda: (os.getpid(), data["x"] * 2))
+    data["x"] = None                                   # after the fork: the child keeps its copy
+    pid, doubled = join()
+    assert pid != os.getpid() and np.array_equal(doubled, [0.0, 2.0, 4.0, 6.0])
+
+    def boom():
+        raise DataError("no capsule", "stack_2")
+
+    with pytest.raises(DataError, match="stack_2: no capsule"):
+        fork_child(boom)()
+
+    def parent():
+        import multiprocessing as mp
+
+        with mp.get_context("fork").Pool(2) as pool:
+            return os.getpid(), set(pool.map(_pid_of, range(8), chunksize=1))
+
+    me, workers = fork_child(parent, daemon=False)()
+    assert me != os.getpid() and me not in workers and os.getpid() not in workers
+
+
+def _pid_of(_):
+    return os.getpid()

@@ -513,3 +513,37 @@ def test_a_column_landmark_stays_over_its_seed_when_a_flat_plate_tilts():
         p = found[deg, True]
         assert np.hypot(p[0] - seed[0], p[2] - seed[2]) < 0.6, p             # over the seed
         assert p[1] > -0.5, p                                                 # on the upper surface
+
+
+def test_meshing_one_bone_at_a_time_or_each_in_its_own_worker_gives_the_same_meshes(monkeypatch):
+    """The meshing workers' schedule (two at once, one at a time, every bone in a worker of its own
+    that then exits) changes the memory held, never a mesh: same vertices, faces and landmarks."""
+    import bonecap.skeleton.generic as gen
+
+    monkeypatch.delenv("BONECAP_WORKERS", raising=False)
+    bones = ["femur_r", "tibia_r", "patella_r"]
+
+    def build(**kw):
+        before = gen.mesh_cache_keys()
+        sk = gen._build_generic_skeleton(bones=bones, resolution=3.0, **kw)
+        gen.forget_meshes(gen.mesh_cache_keys() - before)     # each build meshes afresh
+        return sk
+
+    ref = build()
+    monkeypatch.setattr(gen, "OWN_WORKER_VOXELS", 0)         # every bone "large": a worker each
+    own = build(mesh_at_once=1)
+    monkeypatch.setattr(gen, "OWN_WORKER_VOXELS", 10 ** 12)
+    one = build(mesh_at_once=1)
+    assert len([b for b in ref.bones.values() if b.mesh is not None]) >= 5      # the pelvis and sacrum too
+    for other in (own, one):
+        assert list(other.bones) == list(ref.bones)
+        for name, b in ref.bones.items():
+            o = other.bones[name]
+            if b.mesh is None:
+                assert o.mesh is None
+                continue
+            np.testing.assert_array_equal(o.mesh.vertices, b.mesh.vertices)
+            np.testing.assert_array_equal(o.mesh.faces, b.mesh.faces)
+            assert o.landmarks.keys() == b.landmarks.keys()
+            for k in b.landmarks:
+                np.testing.assert_array_equal(o.landmarks[k], b.landmarks[k])

@@ -1843,11 +1843,15 @@ def _mesh_job(i):
     return i, (d.V, d.F, d.Vi, d.Fi, d.landmarks)
 
 
-def _mesh_all(drafts: list[_Draft], workers: int | None = None) -> None:
-    """Mesh every draft, in parallel worker processes when possible (fork start method).
+def _mesh_all(drafts: list[_Draft], workers: int | None = None, *, at_once: int | None = None) -> None:
+    """Mesh every draft, in worker processes when possible (fork start method).
 
     ``BONECAP_WORKERS`` sets the number of processes (1: no subprocess, e.g. inside a
-    multi-threaded host); the default is the number of CPUs, at most 4.
+    multi-threaded host); the default is the number of CPUs, at most 4. The workers are
+    forked from a child of this process (:func:`_mesh_pool`), so that this one never
+    holds the meshing libraries. ``at_once`` caps how many bones are meshed at the
+    same time and meshes the large ones in workers of their own (the phantom's
+    default preset: one at a time, for its memory target).
     """
     global _JOBS
     if workers is None:
@@ -1857,34 +1861,91 @@ def _mesh_all(drafts: list[_Draft], workers: int | None = None) -> None:
     for d in drafts:
         if id(d) not in todo_ids:
             _mesh_draft(d)                     # from the cache
-    pool = None
+    results = None
     if workers > 1 and len(todo) > 3:
-        try:
-            import multiprocessing as mp
+        from ..parallel import fork_child
 
-            if mp.current_process().daemon:
-                raise RuntimeError("daemonic processes cannot have children")
-            _JOBS = todo
-            pool = mp.get_context("fork").Pool(min(workers, len(todo)))
-        except Exception:                      # no fork here: mesh in this process
-            pool = None
+        _JOBS = todo
+        n = max(1, min(workers, len(todo), at_once or workers))
+        try:
+            join = fork_child(lambda: _mesh_pool(n, lean=at_once is not None), daemon=False)
+        except RuntimeError:                   # no fork here: mesh in this process
+            join = None
+        try:
+            results = join() if join is not None else None
+        finally:
             _JOBS = []
-    if pool is None:
+    if results is None:
         for d in todo:
             _mesh_draft(d)
         return
+    for d, res in zip(todo, results):
+        d.V, d.F, d.Vi, d.Fi, lms = res
+        d.landmarks = dict(lms)
+        _cache_put(_draft_key(d), (d.V, d.F, d.Vi, d.Fi, dict(d.landmarks)))
+
+
+#: A bone whose sampling grid (its bounds over the voxel size) has at least this many voxels is
+#: meshed in a worker process of its own (:func:`_mesh_pool`); at the default phantom's resolution
+#: that is the 17 largest of 59, the hip bone, scapula, ribs, hands' rays, femur, skull...
+OWN_WORKER_VOXELS = 400_000
+
+
+def _mesh_pool(workers: int, lean: bool = False) -> list:
+    """Mesh :data:`_JOBS` in ``workers`` forked processes; the results in their order.
+
+    Runs in a child of the caller (:func:`_mesh_all`): the meshing libraries (VTK,
+    trimesh, fast_simplification; ~75 MiB of module state) are imported here once
+    and shared with the workers forked from here, and the caller never holds them.
+    The bones go largest first to a pool of ``workers``.
+
+    ``lean`` (a cap on the bones meshed at once was asked for, for memory): the
+    bones sampled on a large grid (:data:`OWN_WORKER_VOXELS`) are meshed one after
+    the other, each in a worker of its own that then exits, beside the small ones
+    when ``workers`` > 1, before them otherwise. A pool's workers keep what their
+    largest bone left (the decimation library keeps its working vectors at their
+    largest size, the heap what the grids left): ~90 MiB more per worker after the
+    hip bone at the default phantom's resolution. The small bones' workers stay (a
+    fork per bone costs ~0.1 s of page copies and first calls). Slower: the default
+    generic skeleton took 11 s instead of 8 on 2 cores.
+    """
+    import multiprocessing as mp
+
+    import fast_simplification  # noqa: F401 - imported before the fork, shared with the workers
+    import trimesh  # noqa: F401
+    from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D  # noqa: F401
+
+    todo = _JOBS
+    cost = [float(np.prod((d.builder.bounds()[1] - d.builder.bounds()[0]) / d.builder.voxel)) for d in todo]
+    order = [int(i) for i in np.argsort(cost)[::-1]]
+    if lean:
+        big = [i for i in order if cost[i] >= OWN_WORKER_VOXELS]
+        small = [i for i in order if cost[i] < OWN_WORKER_VOXELS]
+        # (ids, processes, bones per process before it is replaced)
+        groups = [(big, 1, 1), (small, workers - 1 if big and workers > 1 else workers, None)]
+    else:
+        groups = [(order, workers, None)]
+    out: list = [None] * len(todo)
+    ctx = mp.get_context("fork")
+    pools, running = [], []
     try:
-        cost = [float(np.prod((d.builder.bounds()[1] - d.builder.bounds()[0]) / d.builder.voxel)) for d in todo]
-        order = [int(i) for i in np.argsort(cost)[::-1]]
-        for i, res in pool.imap_unordered(_mesh_job, order, chunksize=1):
-            d = todo[i]
-            d.V, d.F, d.Vi, d.Fi, lms = res
-            d.landmarks = dict(lms)
-            _cache_put(_draft_key(d), (d.V, d.F, d.Vi, d.Fi, dict(d.landmarks)))
+        for ids, n, per_worker in groups:
+            if not ids:
+                continue
+            pools.append(ctx.Pool(min(n, len(ids)), maxtasksperchild=per_worker))
+            running.append(pools[-1].imap_unordered(_mesh_job, ids, chunksize=1))
+            if lean and workers == 1:               # one process at a time: this group, then the next
+                for i, res in running.pop():
+                    out[i] = res
+                pools[-1].terminate()               # (a pool that forks a worker per bone keeps an idle one)
+        for results in running:
+            for i, res in results:
+                out[i] = res
     finally:
-        pool.terminate()
-        pool.join()
-        _JOBS = []
+        for pool in pools:
+            pool.terminate()
+            pool.join()
+    return out
 
 
 def _pelvis_frame(drafts_r, drafts_l_rightworld):
@@ -1942,7 +2003,7 @@ def build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = Non
 
 def _build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = None, *,
                             side_mirroring: bool = True, description: dict | None = None, bones=None,
-                            resolution: float = 1.0) -> Skeleton:
+                            resolution: float = 1.0, mesh_at_once: int | None = None) -> Skeleton:
     """:func:`build_generic_skeleton` with a mesh resolution factor.
 
     ``resolution`` > 1 samples every bone's implicit shape on a grid that many times
@@ -1984,7 +2045,7 @@ def _build_generic_skeleton(stature_mm: float = 1700.0, params: dict | None = No
             d.inner_target_faces = 0
     # in worker processes at every resolution: the coarse (tiny phantom) bones too, 0.6 s sooner on 2 cores
     # and 50 MB less in this process (2026-11-24)
-    _mesh_all(todo)
+    _mesh_all(todo, at_once=mesh_at_once)
     all_r = {**mid, **side_r}
     all_l = {**mid, **side_l}
     pelvis = _pelvis_frame(side_r, side_l)

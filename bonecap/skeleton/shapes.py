@@ -614,8 +614,14 @@ def _marching_cubes(values: np.ndarray, level: float, origin, voxel):
     pad[1:-1, 1:-1, 1:-1] = values
     # grid values (almost) at the level make (nearly) coincident vertices that later merge
     # into non-manifold edges: push them 1e-3 mm off the level
-    near = np.abs(pad - np.float32(level)) < np.float32(1e-3)
-    pad[near] = np.float32(level) + np.where(pad[near] >= level, np.float32(1e-3), np.float32(-1e-3))
+    # (a few slabs at a time: |pad - level| of the whole grid were two more grids at a worker's peak,
+    # ~35 MB for the scapula at the default phantom's resolution; slabs of the last axis are contiguous
+    # in Fortran order)
+    step = max(1, (1 << 20) // max(1, pad.shape[0] * pad.shape[1]))
+    for k in range(0, pad.shape[2], step):
+        slab = pad[:, :, k:k + step]
+        near = np.abs(slab - np.float32(level)) < np.float32(1e-3)
+        slab[near] = np.float32(level) + np.where(slab[near] >= level, np.float32(1e-3), np.float32(-1e-3))
     del near
     if pad.min() >= level:
         return None
