@@ -18,6 +18,7 @@ workers fill the cores already.
 
 from __future__ import annotations
 
+import gc
 import os
 import pickle
 from collections.abc import Callable, Iterable
@@ -200,7 +201,15 @@ def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], An
             send.close()
 
     proc = ctx.Process(target=child, daemon=daemon)
-    proc.start()
+    # The child shares this process's pages until either writes to them. The cyclic collector's
+    # passes in the child would write to every object alive now and copy their pages (the phantom's
+    # decimation child held ~15 MiB more): frozen, the child's collector leaves them alone. This
+    # process's own collector gets them back at once.
+    gc.freeze()
+    try:
+        proc.start()
+    finally:
+        gc.unfreeze()
     send.close()
 
     def join():

@@ -114,6 +114,11 @@ def test_fork_child_returns_its_result_raises_its_error_and_may_fork_workers():
     data["x"] = None                                   # after the fork: the child keeps its copy
     pid, doubled = join()
     assert pid != os.getpid() and np.array_equal(doubled, [0.0, 2.0, 4.0, 6.0])
+    # the objects were frozen for the fork only: this process's collector has them back
+    import gc
+
+    assert gc.get_freeze_count() == 0
+    assert fork_child(gc.get_freeze_count)() > 0      # the child's collector leaves the shared pages alone
 
     def boom():
         raise DataError("no capsule", "stack_2")

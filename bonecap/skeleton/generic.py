@@ -30,6 +30,7 @@ Public API: :func:`build_generic_skeleton`, :func:`load_generic_description`,
 from __future__ import annotations
 
 import copy
+import gc
 import os
 import time
 from dataclasses import dataclass, field
@@ -1926,6 +1927,9 @@ def _mesh_pool(workers: int, lean: bool = False) -> list:
     else:
         groups = [(order, workers, None)]
     out: list = [None] * len(todo)
+    # the objects alive now (modules, the drafts) are shared with the workers page by page; the cyclic
+    # collector's passes in a worker would write to every one of them and copy their pages
+    gc.freeze()
     ctx = mp.get_context("fork")
     pools, running = [], []
     try:
