@@ -204,12 +204,16 @@ def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], An
     # The child shares this process's pages until either writes to them. The cyclic collector's
     # passes in the child would write to every object alive now and copy their pages (the phantom's
     # decimation child held ~15 MiB more): frozen, the child's collector leaves them alone. This
-    # process's own collector gets them back at once.
-    gc.freeze()
+    # process's own collector gets them back at once -- unless a caller had frozen objects already
+    # (gc.unfreeze() would thaw those too): then only those stay out of the child's passes.
+    freeze = gc.get_freeze_count() == 0
+    if freeze:
+        gc.freeze()
     try:
         proc.start()
     finally:
-        gc.unfreeze()
+        if freeze:
+            gc.unfreeze()
     send.close()
 
     def join():

@@ -119,6 +119,13 @@ def test_fork_child_returns_its_result_raises_its_error_and_may_fork_workers():
 
     assert gc.get_freeze_count() == 0
     assert fork_child(gc.get_freeze_count)() > 0      # the child's collector leaves the shared pages alone
+    gc.freeze()                                        # a caller's own freeze is left as it was
+    try:
+        frozen = gc.get_freeze_count()
+        fork_child(gc.get_freeze_count)()
+        assert gc.get_freeze_count() > 0.9 * frozen    # still frozen here (less what died meanwhile)
+    finally:
+        gc.unfreeze()
 
     def boom():
         raise DataError("no capsule", "stack_2")
