@@ -147,3 +147,22 @@ def test_run_beside_returns_the_childs_result_and_raises_its_error(monkeypatch):
     monkeypatch.setenv("BONECAP_WORKERS", "1")
     pid, _ = run_beside(lambda: (os.getpid(), None))()
     assert pid == parent
+
+
+def test_trials_made_here_equal_the_trials_made_beside_the_mri(phantom, tmp_path, monkeypatch):
+    """The default preset makes its trials in this process after the subject (its memory target), the
+    tiny one in a child beside the MRI: the same C3D files and truth poses either way."""
+    from bonecap.phantom import PRESETS, make_phantom
+
+    monkeypatch.setitem(PRESETS["tiny"], "trials_beside", False)
+    out = tmp_path / "here"
+    make_phantom(out, seed=3, preset="tiny", marker_capsules=True)
+    c3ds = sorted(p.name for p in (phantom / "trials").glob("*.c3d"))
+    assert len(c3ds) >= 5 and c3ds == sorted(p.name for p in (out / "trials").glob("*.c3d"))
+    for name in c3ds:
+        assert (out / "trials" / name).read_bytes() == (phantom / "trials" / name).read_bytes(), name
+    for f in sorted((phantom / "truth").glob("*_poses.npz")):
+        a, b = np.load(f), np.load(out / "truth" / f.name)
+        assert a.files == b.files
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=f"{f.name}:{k}")

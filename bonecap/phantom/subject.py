@@ -118,6 +118,7 @@ from __future__ import annotations
 import fnmatch
 import gc
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -2277,14 +2278,15 @@ def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
     of the run. A forked child (:func:`bonecap.parallel.fork_child`) returns it when it exits;
     it shares this process's pages instead of starting an interpreter of its own (a fresh
     one held ~35 MiB more: its own numpy and the mesh read back from a pipe). Same
-    algorithm and input, so the same result. Where there is no ``fork`` it runs here.
+    algorithm and input, so the same result. Where there is no ``fork``, or with
+    ``BONECAP_WORKERS=1`` (no child processes, e.g. inside a multi-threaded host), it runs here.
     """
     import fast_simplification
 
     def run():
         return fast_simplification.simplify(v, f, target_reduction=reduction)
 
-    if len(f) <= _SIMPLIFY_IN_CHILD_FACES:
+    if len(f) <= _SIMPLIFY_IN_CHILD_FACES or os.environ.get("BONECAP_WORKERS", "").strip() == "1":
         return run()
     from bonecap.parallel import fork_child
 
