@@ -440,3 +440,29 @@ def test_mesh_checks_match_trimesh_and_extract_orients_outward():
     assert subj._closed_and_oriented(mesh.faces, len(mesh.vertices))
     vol = subj._signed_volume(mesh.vertices, mesh.faces)
     assert vol > 0 and abs(vol / (4 / 3 * np.pi * 30.0 ** 3) - 1) < 0.05
+
+
+def test_a_surface_decimated_in_two_halves_stays_closed_and_on_the_surface(monkeypatch):
+    """The body surfaces' first decimation runs on two halves with their cut kept (the library's memory
+    grows with the faces it is given): joined again, the halves are one closed, consistently wound
+    surface with about ``keep`` of the faces, still on the dense one; ``_finish_surface`` then brings
+    the whole to its budget, closed."""
+    from bonecap.phantom import subject as subj
+
+    tm = trimesh.creation.icosphere(subdivisions=6, radius=80.0)
+    tm.vertices *= [1.0, 2.5, 0.8]                                # elongated: the cut goes across its length
+    v, f = np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.int32)
+    hv, hf = subj._presimplify_halves(v, f, 0.6)
+    assert abs(len(hf) / len(f) - 0.6) < 0.02
+    assert subj._closed_and_oriented(hf, len(hv)) and subj._signed_volume(hv.astype(float), hf) > 0
+    half = trimesh.Trimesh(hv, hf, process=False)
+    # no gap along the cut: the volume is the dense surface's (a seam left open or doubled would not be)
+    assert abs(half.volume / tm.volume - 1.0) < 0.002
+    _, dist, _ = trimesh.Trimesh(v, f, process=False).nearest.on_surface(hv[::7])
+    assert dist.max() < 0.3
+
+    monkeypatch.setattr(subj, "_HALVES_ABOVE_FACES", 10_000)
+    mesh = subj._finish_surface(v, f, 20_000, "test")
+    assert len(mesh.faces) <= 20_000 and subj._closed_and_oriented(mesh.faces, len(mesh.vertices))
+    _, dist, _ = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).nearest.on_surface(v[::11].astype(float))
+    assert dist.mean() < 0.1 and dist.max() < 1.0
