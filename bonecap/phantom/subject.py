@@ -2288,7 +2288,14 @@ def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
     def run():
         return fast_simplification.simplify(v, f, target_reduction=reduction)
 
-    if len(f) <= _SIMPLIFY_IN_CHILD_FACES or os.environ.get("BONECAP_WORKERS", "").strip() == "1":
+    return run() if len(f) <= _SIMPLIFY_IN_CHILD_FACES else _in_child(run)
+
+
+def _in_child(run: Callable[[], Any]) -> Any:
+    """``run()`` in a forked child (:func:`bonecap.parallel.fork_child`), so that what a decimation
+    library keeps allocated goes with it; here with ``BONECAP_WORKERS=1`` (no child processes, e.g.
+    inside a multi-threaded host) or where there is no ``fork``."""
+    if os.environ.get("BONECAP_WORKERS", "").strip() == "1":
         return run()
     from bonecap.parallel import fork_child
 
@@ -2319,9 +2326,8 @@ def _presimplify_halves(v: np.ndarray, f: np.ndarray, keep: float = _HALVES_KEEP
     target as before, from ~60 % of the faces: the working vectors of a half or of
     that, never of the whole. Against one pass on seed 4's skin: the dense
     surface's points lie 0.012 mm (mean) / 0.067 mm (max) from the result, 0.012 /
-    0.085 mm from one pass's. In a forked child (:func:`bonecap.parallel.fork_child`;
-    here with ``BONECAP_WORKERS=1`` or without ``fork``), so that the vectors go
-    with it.
+    0.085 mm from one pass's. In a forked child (:func:`_in_child`), so that the
+    vectors go with it.
     """
     def run():
         import fast_simplification
@@ -2344,15 +2350,7 @@ def _presimplify_halves(v: np.ndarray, f: np.ndarray, keep: float = _HALVES_KEEP
         V, joined = np.unique(V, axis=0, return_inverse=True)
         return V.astype(np.float32), joined.ravel()[F].astype(np.int32)
 
-    if os.environ.get("BONECAP_WORKERS", "").strip() == "1":
-        return run()
-    from bonecap.parallel import fork_child
-
-    try:
-        join = fork_child(run)
-    except RuntimeError:
-        return run()
-    return join()
+    return _in_child(run)
 
 
 def _closed_and_oriented(faces: np.ndarray, n_vertices: int) -> bool:
