@@ -26,7 +26,7 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-__all__ = ["fork_map", "fork_start", "fork_child", "Pending", "default_workers", "one_blas_thread"]
+__all__ = ["fork_map", "fork_start", "fork_child", "fork_or_here", "Pending", "default_workers", "one_blas_thread"]
 
 # the jobs whose pools are alive, by id: a worker forked for job k looks its function and items up here
 # (inherited with the fork, never pickled); several can be running at once (fork_start)
@@ -227,3 +227,23 @@ def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], An
             raise value
         return value
     return join
+
+
+def fork_or_here(fn: Callable[[], Any], *, beside: bool = False) -> Callable[[], Any]:
+    """:func:`fork_child` where it can and should run, else ``fn()`` here at once; a ``join()`` either way.
+
+    ``fn`` runs here with ``BONECAP_WORKERS=1`` (no child processes, e.g. inside a
+    multi-threaded host), where there is no ``fork``, inside a daemonic process, and,
+    with ``beside=True`` (the caller means to work while the child runs), on one CPU.
+    Without ``beside`` the child is for memory, not speed: what ``fn`` leaves
+    allocated (a decimation library's vectors) goes with it.
+    """
+    env = os.environ.get("BONECAP_WORKERS", "").strip()
+    here = env == "1" or (beside and (int(env or "0") or os.cpu_count() or 1) < 2)
+    if not here:
+        try:
+            return fork_child(fn)
+        except RuntimeError:
+            pass
+    result = fn()
+    return lambda: result

@@ -406,7 +406,7 @@ def test_a_fin_folded_by_the_decimation_is_dropped_and_the_mesh_closes():
 
 def test_mesh_checks_match_trimesh_and_extract_orients_outward():
     """``_closed_and_oriented`` is trimesh's ``is_watertight and is_winding_consistent`` and
-    ``_signed_volume`` its ``volume`` (both replace trimesh in ``_extract`` for memory); checked on
+    ``_signed_volume`` its ``volume`` (both replace trimesh in ``_finish_surface`` for memory); checked on
     a closed sphere, one with a flipped face, one with a face removed and two spheres touching at
     an edge shared by four faces (what ``_repair_pinches`` separates)."""
     from bonecap.phantom import subject as subj
@@ -431,11 +431,11 @@ def test_mesh_checks_match_trimesh_and_extract_orients_outward():
     assert np.isclose(subj._signed_volume(V, F, chunk=100), sphere.volume, rtol=1e-12)
     assert np.isclose(subj._signed_volume(V, F[:, ::-1]), -sphere.volume, rtol=1e-12)
 
-    # _extract of an inward-wound level set comes out closed, outward and decimated to budget
+    # an inward-wound level set, extracted and finished, comes out closed, outward and decimated to budget
     ax = np.arange(48, dtype=np.float32)
     X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
     field = (np.sqrt((X - 23.5) ** 2 + (Y - 24.2) ** 2 + (Z - 23.1) ** 2) - 15.0).astype(np.float16)
-    mesh = subj._extract(field, np.zeros(3), 2.0, 1500, 4, "test")
+    mesh = subj._finish_surface(*subj._dense_surface(field, np.zeros(3), 2.0, 4, 1500), 1500, "test")
     assert len(mesh.faces) <= 1500
     assert subj._closed_and_oriented(mesh.faces, len(mesh.vertices))
     vol = subj._signed_volume(mesh.vertices, mesh.faces)

@@ -388,20 +388,13 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
 def run_beside(fn):
     """Start ``fn()`` in a forked child process; return a ``join()`` that gives its result.
 
-    :func:`bonecap.parallel.fork_child`, except that where ``fork`` is missing,
-    with one CPU, or with ``BONECAP_WORKERS=1``, ``fn`` runs here at once and
-    ``join()`` returns its result. An error in the child is raised again by ``join()``.
+    :func:`bonecap.parallel.fork_or_here` with ``beside=True``: where ``fork`` is
+    missing, with one CPU, or with ``BONECAP_WORKERS=1``, ``fn`` runs here at once
+    and ``join()`` returns its result. An error in the child is raised again by ``join()``.
     """
-    from bonecap.parallel import fork_child
+    from bonecap.parallel import fork_or_here
 
-    workers = int(os.environ.get("BONECAP_WORKERS", "0")) or (os.cpu_count() or 1)
-    if workers >= 2:
-        try:
-            return fork_child(fn)
-        except RuntimeError:
-            pass
-    result = fn()
-    return lambda: result
+    return fork_or_here(fn, beside=True)
 
 
 def _skeleton_truth(skeleton) -> dict[str, Any]:

@@ -2288,22 +2288,11 @@ def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
     def run():
         return fast_simplification.simplify(v, f, target_reduction=reduction)
 
-    return run() if len(f) <= _SIMPLIFY_IN_CHILD_FACES else _in_child(run)
-
-
-def _in_child(run: Callable[[], Any]) -> Any:
-    """``run()`` in a forked child (:func:`bonecap.parallel.fork_child`), so that what a decimation
-    library keeps allocated goes with it; here with ``BONECAP_WORKERS=1`` (no child processes, e.g.
-    inside a multi-threaded host) or where there is no ``fork``."""
-    if os.environ.get("BONECAP_WORKERS", "").strip() == "1":
+    if len(f) <= _SIMPLIFY_IN_CHILD_FACES:
         return run()
-    from bonecap.parallel import fork_child
+    from bonecap.parallel import fork_or_here
 
-    try:
-        join = fork_child(run)
-    except RuntimeError:
-        return run()
-    return join()
+    return fork_or_here(run)()
 
 
 #: A dense surface above this many faces is first decimated in two halves (:func:`_presimplify_halves`).
@@ -2326,8 +2315,8 @@ def _presimplify_halves(v: np.ndarray, f: np.ndarray, keep: float = _HALVES_KEEP
     target as before, from ~60 % of the faces: the working vectors of a half or of
     that, never of the whole. Against one pass on seed 4's skin: the dense
     surface's points lie 0.012 mm (mean) / 0.067 mm (max) from the result, 0.012 /
-    0.085 mm from one pass's. In a forked child (:func:`_in_child`), so that the
-    vectors go with it.
+    0.085 mm from one pass's. In a forked child (:func:`bonecap.parallel.fork_or_here`),
+    so that the vectors go with it.
     """
     def run():
         import fast_simplification
@@ -2350,7 +2339,9 @@ def _presimplify_halves(v: np.ndarray, f: np.ndarray, keep: float = _HALVES_KEEP
         V, joined = np.unique(V, axis=0, return_inverse=True)
         return V.astype(np.float32), joined.ravel()[F].astype(np.int32)
 
-    return _in_child(run)
+    from bonecap.parallel import fork_or_here
+
+    return fork_or_here(run)()
 
 
 def _closed_and_oriented(faces: np.ndarray, n_vertices: int) -> bool:
@@ -2383,22 +2374,10 @@ def _signed_volume(V: np.ndarray, F: np.ndarray, chunk: int = 65_536) -> float:
     return vol / 6.0
 
 
-def _extract(field: np.ndarray, origin: np.ndarray, h: float, max_faces: int, taubin: int, what: str) -> Mesh:
-    """Zero level set of ``field`` (negative inside, model frame) as a smoothed, decimated, watertight mesh.
-
-    Memory (the whole-body skin at 3.5 mm: ~440 000 faces before decimation): plain
-    arrays are carried, not trimesh objects, and the checks are
-    :func:`_closed_and_oriented` and :func:`_signed_volume`; trimesh's cached
-    edge groups, adjacency graph and mass properties had made this the phantom's
-    peak (+140 MB over the field, 2026-11-26).
-    """
-    return _finish_surface(*_dense_surface(field, origin, h, taubin, max_faces), max_faces, what)
-
-
 def _dense_surface(field: np.ndarray, origin: np.ndarray, h: float, taubin: int,
                    max_faces: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The first half of :func:`_extract`: the zero level set of ``field`` as ``(verts, faces)``,
-    Taubin-smoothed, not yet decimated nor checked (the field can be freed after it).
+    """The zero level set of ``field`` (negative inside, model frame) as ``(verts, faces)``, Taubin-smoothed,
+    not yet decimated nor checked (the field can be freed after it; :func:`_finish_surface` does the rest).
 
     A surface over ``max_faces``, which :func:`_finish_surface` will decimate, comes as float32
     vertices and int32 faces, what the decimation takes anyway (the same result; half the memory
@@ -2415,8 +2394,14 @@ def _dense_surface(field: np.ndarray, origin: np.ndarray, h: float, taubin: int,
 
 
 def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: str) -> Mesh:
-    """The second half of :func:`_extract`: a :func:`_dense_surface` decimated to ``max_faces``,
-    made watertight and wound outward."""
+    """A :func:`_dense_surface` decimated to ``max_faces``, made watertight and wound outward.
+
+    Memory (the whole-body skin at 3.5 mm: ~440 000 faces before decimation): plain
+    arrays are carried, not trimesh objects, and the checks are
+    :func:`_closed_and_oriented` and :func:`_signed_volume`; trimesh's cached
+    edge groups, adjacency graph and mass properties had made this the phantom's
+    peak (+140 MB over the field, 2026-11-26).
+    """
     import trimesh
 
     if len(faces) > max_faces:
