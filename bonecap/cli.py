@@ -50,7 +50,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_phantom(args: argparse.Namespace) -> int:
-    from bonecap.phantom import make_phantom
+    from bonecap.phantom import PRESETS, make_phantom
 
     summary = make_phantom(args.out_dir, seed=args.seed, stature_mm=args.stature * 1000.0 if args.stature else None,
                            generic=args.generic, preset=args.preset, marker_capsules=args.marker_capsules)
@@ -62,7 +62,7 @@ def _cmd_phantom(args: argparse.Namespace) -> int:
     print(f"  truth: {args.out_dir}/truth (formats in truth/README.md)")
     print(f"  took {summary['wall_s']:.1f} s: "
           + ", ".join(f"{k} {v:.1f}" for k, v in summary["timings_s"].items())
-          + " (trials made beside the MRI)")
+          + (" (trials made beside the MRI)" if PRESETS[summary["preset"]]["trials_beside"] else ""))
     return 0
 
 

@@ -149,14 +149,28 @@ def test_run_beside_returns_the_childs_result_and_raises_its_error(monkeypatch):
     assert pid == parent
 
 
-def test_trials_made_here_equal_the_trials_made_beside_the_mri(phantom, tmp_path, monkeypatch):
-    """The default preset makes its trials in this process after the subject (its memory target), the
-    tiny one in a child beside the MRI: the same C3D files and truth poses either way."""
+def test_trials_made_after_the_subject_equal_the_trials_made_beside_the_mri(phantom, tmp_path, monkeypatch):
+    """The default preset makes its trials after the subject, in a child that ends before the MRI starts
+    (its memory target), the tiny one in a child beside the MRI: the same C3D files and truth poses
+    either way."""
+    import os
+
+    import bonecap.phantom.trials as trials_module
     from bonecap.phantom import PRESETS, make_phantom
 
+    pids = tmp_path / "pids"
+    library = trials_module.make_trials
+
+    def recorded(*args, **kwargs):                  # which process made the trials
+        pids.write_text(str(os.getpid()))
+        return library(*args, **kwargs)
+
+    monkeypatch.setattr(trials_module, "make_trials", recorded)
+    monkeypatch.delenv("BONECAP_WORKERS", raising=False)
     monkeypatch.setitem(PRESETS["tiny"], "trials_beside", False)
     out = tmp_path / "here"
     make_phantom(out, seed=3, preset="tiny", marker_capsules=True)
+    assert int(pids.read_text()) != os.getpid()
     c3ds = sorted(p.name for p in (phantom / "trials").glob("*.c3d"))
     assert len(c3ds) >= 5 and c3ds == sorted(p.name for p in (out / "trials").glob("*.c3d"))
     for name in c3ds:

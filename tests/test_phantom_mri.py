@@ -411,6 +411,32 @@ def test_place_capsules_refuses_impossible_requests():
     assert len(capsule_meshes(caps.centres, caps.radius_mm)) == 5 == len(caps.meshes)
 
 
+def test_capsule_icosphere_is_trimeshs_and_leaves_a_process_without_trimesh_without_it():
+    """The capsules' sphere is trimesh's icosphere; a process that has not imported trimesh gets it from a
+    short child and still has no trimesh after (the default phantom's main process: ~21 MiB)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\n"
+            "from bonecap.phantom.mri import capsule_meshes\n"
+            "m = capsule_meshes(np.array([[1.0, 2.0, 3.0]]), 4.0)[0]\n"
+            "assert 'trimesh' not in sys.modules, 'trimesh was imported here'\n"
+            "np.save(sys.stdout.buffer, m.vertices); np.save(sys.stdout.buffer, m.faces)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, check=False)
+    assert out.returncode == 0, out.stderr.decode()
+    import io
+
+    buf = io.BytesIO(out.stdout)
+    V, F = np.load(buf), np.load(buf)
+    ref = trimesh.creation.icosphere(subdivisions=3, radius=4.0)
+    assert np.array_equal(V, ref.vertices + [1.0, 2.0, 3.0]) and np.array_equal(F, ref.faces)
+    # made once per size, shared read-only; every capsule gets its own arrays
+    a, b = capsule_meshes(np.zeros((2, 3)), 4.0)
+    assert mri.icosphere(4.0)[0] is mri.icosphere(4.0)[0] and not mri.icosphere(4.0)[0].flags.writeable
+    a.vertices[0] += 1.0
+    assert not np.array_equal(a.vertices, b.vertices) and a.faces is not b.faces
+
+
 # --------------------------------------------------------------------------- #
 # the knee table
 # --------------------------------------------------------------------------- #

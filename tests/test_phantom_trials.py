@@ -358,6 +358,30 @@ def test_scales_switch_artefact_and_noise_off(phantom):
     assert 0.45 < ratio <= 0.56
 
 
+def test_lowest_foot_points_bone_by_bone_equal_one_argmin_over_all_points():
+    """The walking feet's floor contact: each frame's lowest point, found bone by bone, is the one argmin over
+    every point of the foot finds, ties included (the first point)."""
+    from bonecap.phantom.trials import _lowest_points
+
+    rng = np.random.default_rng(5)
+    F, B = 50, 4
+    T = np.tile(np.eye(4), (F, B, 1, 1))
+    T[:, :, :3, :3] = Rotation.from_rotvec(rng.normal(scale=0.6, size=(F * B, 3))).as_matrix().reshape(F, B, 3, 3)
+    T[:, :, :3, 3] = rng.normal(scale=20.0, size=(F, B, 3))
+    idx = [3, 0, 2]
+    pts = [np.round(rng.normal(scale=30.0, size=(n, 3))) for n in (40, 7, 25)]
+    pts[0][11] = pts[2][5] = [0.0, 0.0, -300.0]     # the same point, far below the rest, on two bones...
+    T[:, 2, :3, :3] = T[:, 3, :3, :3] = np.eye(3)
+    T[:, 2] = T[:, 3]                    # ...that move together: the lowest point, tied, in every frame
+    Z = np.concatenate([p @ T[:, i, 2, :3].T + T[:, i, 2, 3] for i, p in zip(idx, pts)], axis=0)
+    low, z_low = _lowest_points(T, idx, pts)
+    assert np.array_equal(low, np.argmin(Z, axis=0)) and np.array_equal(z_low, Z.min(axis=0))
+    assert (low == 11).all()             # the tie, won by the first bone
+    T[:, 2, 2, 3] -= 1000.0              # the third bone far below: its lowest point, offset past the others
+    low2, _ = _lowest_points(T, idx, pts)
+    assert (low2 >= 47).all()
+
+
 def test_tiny_preset_is_fast(phantom, tmp_path):
     t0 = time.perf_counter()
     s = make_trials(phantom["skeleton"], phantom["marker_set"], tmp_path, duration_scale=0.2)

@@ -49,8 +49,8 @@ FOREARM_TWISTS_DEG = (0.0, 99.5, 172.1)
 #: (coarse, a few stations, short trials); ``default`` is the paper's set-up.
 #: ``trials_beside``: the trials are made in a forked child while the MRI renders
 #: (:func:`run_beside`); the default preset makes them after the subject instead,
-#: in this process, for its memory target (the two processes together held
-#: ~350 MiB; ~5 s longer).
+#: in a child that ends before the MRI starts, for its memory target (the two
+#: processes together held ~350 MiB; ~5 s longer).
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {"n_stations": 8, "pixel_mm": 1.8, "pitch_mm": 5.0, "thickness_mm": 5.0, "supersample": 4,
                 "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
@@ -102,7 +102,7 @@ def _write_json(path: Path, obj: Any) -> None:
         tmp.write_text(json.dumps(obj, indent=2))
 
 
-def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float = 4.0,
+def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float | None = None,
                      marker_radius_mm: float = 7.0) -> dict[str, Any]:
     """Oil capsules under the trial markers at the MRI (reference) pose, LPS.
 
@@ -110,10 +110,14 @@ def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float = 4.0,
     (:func:`~bonecap.phantom.trials.place_phantom_markers`: centre one marker
     radius out along the skin normal); each capsule touches the skin at the
     same contact point, so its centre is ``marker_radius - capsule_radius``
-    closer to the skin along that normal.
+    closer to the skin along that normal. ``capsule_radius_mm``: by default
+    half of :data:`~bonecap.phantom.mri.CAPSULE_DIAMETER_MM`.
     """
+    from bonecap.phantom.mri import CAPSULE_DIAMETER_MM
     from bonecap.phantom.trials import place_phantom_markers
 
+    if capsule_radius_mm is None:
+        capsule_radius_mm = CAPSULE_DIAMETER_MM / 2
     binding = place_phantom_markers(marker_set, skeleton, skin, marker_radius_mm=marker_radius_mm)
     tm = skin.to_trimesh()
     contact, _, _ = tm.nearest.on_surface(binding.world)
@@ -154,10 +158,12 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
                  marker_capsules: bool = False) -> dict[str, Any]:
     """Make a synthetic subject: MRI stations, forearm stacks, trials and the truth.
 
-    The trials are made in a forked child process while this one renders the
-    MRI (:func:`run_beside`; ``BONECAP_WORKERS=1`` keeps everything in one
-    process); ``timings_s["trials"]`` is the child's time, ``trials_wait``
-    what was left to wait for, ``wall_s`` the whole run.
+    The trials are made in a forked child process: at the tiny preset while this
+    one renders the MRI (:func:`run_beside`), at the default preset after the
+    subject, for memory (``PRESETS[preset]["trials_beside"]``);
+    ``BONECAP_WORKERS=1`` keeps everything in one process. ``timings_s["trials"]``
+    is the child's time, ``trials_wait`` what was left to wait for, ``wall_s``
+    the whole run.
 
     Parameters
     ----------
@@ -187,8 +193,9 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         The summary also written to ``phantom.json``.
     """
     from bonecap.markers import load_marker_set
-    from bonecap.phantom.mri import (FOREARM_EXTEND_MM, ForearmPose, capsule_meshes, plan_stations,
-                                     render_forearm_stacks, render_stations, write_merged_labels)
+    from bonecap.phantom.mri import (CAPSULE_DIAMETER_MM, FOREARM_EXTEND_MM, ForearmPose, capsule_meshes,
+                                     icosphere, plan_stations, render_forearm_stacks, render_stations,
+                                     write_merged_labels)
     from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
@@ -205,6 +212,10 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     t_start = time.perf_counter()
     bar = stage_bar(5, "phantom")
 
+    # The capsules' sphere first, while this process is small: it takes trimesh, which the default
+    # preset otherwise imports only in children (see mri.icosphere).
+    icosphere(CAPSULE_DIAMETER_MM / 2)
+
     # 1. The subject.
     t0 = time.perf_counter()
     bar.set_postfix_str("subject")
@@ -219,23 +230,28 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     timings["subject"] = time.perf_counter() - t0
     bar.update()
 
-    # 4. Trials, in a forked child while this process renders the MRI (tiny preset), or here and now:
-    # they need only the subject and their own seeded generator, so the outputs are the same either way.
+    # 4. Trials, in a forked child while this process renders the MRI (tiny preset), or now in a child
+    # that ends before the MRI starts (default): they need only the subject and their own seeded
+    # generator, so the outputs are the same either way.
     marker_set = load_marker_set("kojima_paper") if str(generic) == "default" else template_marker_set(generic)
 
     def trials_stage():
+        from bonecap.parallel import one_blas_thread
+
         t = time.perf_counter()
-        res = make_trials(skeleton, marker_set, out, skin=subject.skin, seed=seed,
-                          duration_scale=cfg["duration_scale"])
+        with one_blas_thread():      # as a child runs them: bit-identical trials wherever they run
+            res = make_trials(skeleton, marker_set, out, skin=subject.skin, seed=seed,
+                              duration_scale=cfg["duration_scale"])
         return res, time.perf_counter() - t
 
     if cfg["trials_beside"]:
         trials_job = run_beside(trials_stage)
     else:
-        from bonecap.parallel import one_blas_thread
+        from bonecap.parallel import fork_or_here
 
-        with one_blas_thread():      # as the child runs them: bit-identical trials either way
-            trials_done = trials_stage()
+        # a child for memory, not speed: what the trials import (trimesh and its dependencies,
+        # ~21 MiB) and leave on the heap goes with it instead of sitting under the MRI's peaks
+        trials_done = fork_or_here(trials_stage)()
         trials_job = lambda: trials_done  # noqa: E731
 
     capsule_truth = None

@@ -34,7 +34,7 @@ Whole-body stations
     - :func:`merged_grid` ``(meshes, voxel_mm=2.0, margin_mm=10.0) -> (affine, shape)``
 Forearm stacks and capsules
     - :class:`CapsulePlacement`, :func:`place_capsules` ``(skin_mesh, n, rng, ...)``,
-      :func:`capsule_meshes`, :func:`capsule_centres_on`
+      :func:`capsule_meshes`, :func:`icosphere`, :func:`capsule_centres_on`, :data:`CAPSULE_DIAMETER_MM`
     - :class:`ForearmPose`, :func:`plan_forearm_stack`,
       :class:`ForearmTruth`, :func:`render_forearm_stacks` ``(poses, out_dir, rng, ...)``
 
@@ -97,8 +97,10 @@ References
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -130,12 +132,17 @@ __all__ = [
     "CapsulePlacement",
     "place_capsules",
     "capsule_meshes",
+    "icosphere",
+    "CAPSULE_DIAMETER_MM",
     "capsule_centres_on",
     "ForearmPose",
     "ForearmTruth",
     "plan_forearm_stack",
     "render_forearm_stacks",
 ]
+
+#: The MRI-visible oil capsules' diameter (mm): the paper's 8 mm.
+CAPSULE_DIAMETER_MM = 8.0
 
 #: The measured tissue table shipped with the package.
 TISSUE_YAML = Path(__file__).with_name("tissue_intensities.yaml")
@@ -1220,7 +1227,7 @@ def _plane_distance_mm(plan: StationPlan, points: np.ndarray) -> np.ndarray:
 
 
 def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | None = None, *,
-                   diameter_mm: float = 8.0, plans: Sequence[StationPlan] | None = None,
+                   diameter_mm: float = CAPSULE_DIAMETER_MM, plans: Sequence[StationPlan] | None = None,
                    skins: Sequence[Mesh] | None = None, min_plane_distance_mm: float = 0.5,
                    min_separation_mm: float | None = None, region: np.ndarray | None = None,
                    region_radius_mm: float = 80.0, max_tries: int = 200) -> CapsulePlacement:
@@ -1350,12 +1357,37 @@ def capsule_meshes(centres: np.ndarray, radius_mm: float, subdivisions: int = 3)
     -------
     list of Mesh
     """
-    import trimesh
-
     if not float(radius_mm) > 0:
         raise ValueError(f"radius_mm must be positive, got {radius_mm}")
-    base = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius_mm))
-    return [Mesh(base.vertices + c, base.faces.copy(), "lps") for c in np.asarray(centres, float).reshape(-1, 3)]
+    V, F = icosphere(float(radius_mm), int(subdivisions))
+    return [Mesh(V + c, F.copy(), "lps") for c in np.asarray(centres, float).reshape(-1, 3)]
+
+
+@functools.lru_cache(maxsize=8)
+def icosphere(radius_mm: float, subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """``trimesh.creation.icosphere`` as read-only ``(vertices, faces)`` arrays, made once per size.
+
+    Where trimesh is not imported yet, a short forked child makes it
+    (:func:`bonecap.parallel.fork_or_here`): trimesh and its dependencies hold
+    ~21 MiB to the end of a process that imports them. :func:`~bonecap.phantom.make_phantom`
+    asks for its capsules' sphere first, while its process is small (its body
+    decimation and trials run in children too), so that no trimesh sits under
+    the MRI rendering's peaks.
+    """
+    def run():
+        import trimesh
+
+        m = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius_mm))
+        return np.asarray(m.vertices, dtype=float), np.asarray(m.faces, dtype=np.int64)
+
+    if "trimesh" in sys.modules:
+        V, F = run()
+    else:
+        from bonecap.parallel import fork_or_here
+
+        V, F = fork_or_here(run)()
+    V.flags.writeable = F.flags.writeable = False      # shared by every call (the cache)
+    return V, F
 
 
 @dataclass
@@ -1499,7 +1531,7 @@ class ForearmTruth:
 
 def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh, str]]],
                           out_dir: str | os.PathLike, rng: np.random.Generator | int | None = None, *,
-                          axis: np.ndarray | None = None, n_capsules: int = 8, capsule_diameter_mm: float = 8.0,
+                          axis: np.ndarray | None = None, n_capsules: int = 8, capsule_diameter_mm: float = CAPSULE_DIAMETER_MM,
                           pixel_mm: float = 0.7, pitch_mm: float = 2.5, thickness_mm: float = 2.5,
                           min_plane_distance_mm: float = 0.5, scale_range: tuple[float, float] = (0.75, 1.3),
                           inplane_supersample: int = 4, through_plane_samples: int = 4,

@@ -2018,26 +2018,26 @@ def _y_slabs(shape: tuple[int, int, int], voxels: int | None = None) -> list[tup
     return [(j0, min(j0 + dy, shape[1])) for j0 in range(0, shape[1], dy)]
 
 
-def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings: dict) -> tuple:
-    """Skin and fascia fields on a regular grid (``field[i, j, k]`` at ``origin + h (i, j, k)``), model frame.
+def _fields(W: np.ndarray, m_skin: np.ndarray, m_mus: np.ndarray, plan: _Plan, params, h: float,
+            timings: dict) -> tuple:
+    """The skin field and the fat thickness on a regular grid (``field[i, j, k]`` at
+    ``origin + h (i, j, k)``), model frame, with the bone term of the fascia at its candidate voxels:
+    ``(S, Fat, origin, cand, bm)``. :func:`_layers` makes the skin and fascia fields of them.
+
+    ``W``: the bone samples in the model frame at the MRI pose (``_Samples.world``),
+    ``m_skin`` / ``m_mus``: their skin and fascia margins (mm).
 
     Memory: the grid is filled in slabs along Y (:func:`_y_slabs`): segment
     distances, fat thickness, skin relief and the distance to the bones are
     computed per slab in float32 and only the two results are kept for the
     whole grid, as float16 (~18 M voxels for a whole body with abducted arms at
     3.5 mm: 36 MB each; float16 keeps 1/1000 of the value, < 0.01 mm near the
-    surfaces). Cavities are filled on the whole grid (they need its
-    connectivity). The result is the same as filling the whole grid at once.
-
-    The skin field is returned finished; the fascia field still needs
-    ``_fill_cavities(Mu, -h)`` and :func:`_close_field`, which
-    :func:`make_subject` runs once the skin is extracted and its field freed
-    (the cavity labels take ~56 MB at the default preset: with both fields
-    alive beside them that had been the phantom's peak).
+    surfaces). The result is the same as filling the whole grid at once. The
+    bone samples are not needed after this: :func:`make_subject` frees them
+    before :func:`_layers` labels the grid.
     """
     t0 = time.perf_counter()
     bp = params["body"]
-    W = smp.world(sk)
     lo = W.min(0) - 40.0
     hi = W.max(0) + 40.0
     for sh in plan.shapes.values():
@@ -2054,7 +2054,7 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
     tau = np.float32(12.0)
     amp = float(bp["skin_noise_mm"])
     # bone proximity: occupied voxels, dilated by the largest margin per slab (with a halo)
-    R = float(smp.m_skin.max()) + 4.0
+    R = float(m_skin.max()) + 4.0
     r = int(math.ceil(R / h))
     # the samples' voxels, sorted along Y: each slab marks its own (with the halo) instead of one
     # whole-grid occupancy array (18 M voxels, 18 MB at the default preset, on the peak)
@@ -2151,26 +2151,40 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
             j[~np.isfinite(d)] = 0
             Bd[i0:i0 + 500_000] = np.minimum(d, R)
             idx[i0:i0 + 500_000] = j
-        m_skin = np.where(Bd < R, smp.m_skin[idx], 0.0).astype(np.float32)
-        A.flat[cand] = _smin(A.flat[cand], Bd - m_skin, np.float32(3.0))
+        ms = np.where(Bd < R, m_skin[idx], 0.0).astype(np.float32)
+        A.flat[cand] = _smin(A.flat[cand], Bd - ms, np.float32(3.0))
         # the fascia's bone term, applied once the skin has no cavities
         cand_all.append(to_grid(cand))
-        bm_all.append(Bd - np.where(Bd < R, smp.m_mus[idx], 0.0).astype(np.float32))
+        bm_all.append(Bd - np.where(Bd < R, m_mus[idx], 0.0).astype(np.float32))
         n_cand += len(cand)
         S[:, y0:y1] = A
         Fat[:, y0:y1] = f
-        del A, f, cand, Bd, idx, m_skin
+        del A, f, cand, Bd, idx, ms
         t_bone += time.perf_counter() - ts
-    del ijk, tree, W
-    release_memory()
     timings["segments"] = t_seg
     timings["bone_candidates"] = float(n_cand)
     timings["bone_distance"] = t_bone
+    return S, Fat, origin, cand_all, bm_all
+
+
+def _layers(S: np.ndarray, Fat: np.ndarray, cand_all: list, bm_all: list, h: float,
+            timings: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The skin and fascia fields from :func:`_fields`' results: ``(S, Mu)``, in place of ``S`` and ``Fat``.
+
+    Cavities are filled on the whole grid (they need its connectivity). The skin
+    field is returned finished; the fascia field still needs
+    ``_fill_cavities(Mu, -h)`` and :func:`_close_field`, which
+    :func:`make_subject` runs once the skin is extracted and its field freed
+    (the cavity labels take ~56 MB at the default preset: with both fields
+    alive beside them that had been the phantom's peak).
+    """
     t0 = time.perf_counter()
+    shape = S.shape
     _fill_cavities(S, -h)
     cand = np.concatenate(cand_all)
     bm = np.concatenate(bm_all)
-    del cand_all, bm_all
+    cand_all.clear()                          # the caller's lists: their slabs go now
+    bm_all.clear()
     fmin = np.float32(_f_min(h))
     Mu = Fat                                  # in place: fascia = skin offset inward by the fat
     for y0, y1 in _y_slabs(shape):
@@ -2186,7 +2200,7 @@ def _fields(sk: Skeleton, smp: _Samples, plan: _Plan, params, h: float, timings:
         np.maximum(Mu[:, y0:y1], (S[:, y0:y1].astype(np.float32) + fmin).astype(np.float16), out=Mu[:, y0:y1])
     _close_field(S)
     timings["layers"] = time.perf_counter() - t0
-    return S, Mu, origin, h
+    return S, Mu
 
 
 def _close_field(field: np.ndarray) -> None:
@@ -2268,31 +2282,48 @@ def _taubin(V: np.ndarray, F: np.ndarray, lamb: float, nu: float, iterations: in
     return V
 
 
-#: Above this many faces the body surfaces are decimated in a child process (see :func:`_simplify`):
+#: Above this many faces the body surfaces are decimated in a child process (see :func:`_decimate`):
 #: the library's vectors for 100 000 faces, ~30 MB, would stay in this process to its end.
 _SIMPLIFY_IN_CHILD_FACES = 100_000
 
-def _simplify(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarray, np.ndarray]:
-    """``fast_simplification.simplify(v, f, target_reduction=reduction)``; large meshes in a child process.
 
-    The library keeps its working arrays in global C++ vectors that are cleared but never
-    shrunk: decimating the whole-body skin (~450k faces) left ~120 MB allocated for the rest
-    of the run. A forked child (:func:`bonecap.parallel.fork_child`) returns it when it exits;
-    it shares this process's pages instead of starting an interpreter of its own (a fresh
-    one held ~35 MiB more: its own numpy and the mesh read back from a pipe). Same
-    algorithm and input, so the same result. Where there is no ``fork``, or with
-    ``BONECAP_WORKERS=1`` (no child processes, e.g. inside a multi-threaded host), it runs here.
+def _decimate(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarray, np.ndarray]:
+    """``fast_simplification.simplify(v, f, target_reduction=reduction)``, then trimesh's processing:
+    ``(verts float64, faces int64)``; large meshes in a child process.
+
+    The processing (``trimesh.Trimesh(..., process=True)``) merges the vertices the
+    decimation leaves coincident and drops degenerate faces.
+
+    Memory: the library keeps its working arrays in global C++ vectors that are
+    cleared but never shrunk: decimating the whole-body skin (~450k faces) left
+    ~120 MB allocated for the rest of the run. A forked child
+    (:func:`bonecap.parallel.fork_or_here`) returns them when it exits; it shares
+    this process's pages instead of starting an interpreter of its own (a fresh one
+    held ~35 MiB more: its own numpy and the mesh read back from a pipe). trimesh's
+    processing runs in a second child once the first has gone: with its
+    dependencies trimesh held ~21 MiB in this process to the end, on the peaks of
+    the MRI rendering, and beside the decimation's vectors in one child it made
+    the process tree's peak (+13 MiB). Same algorithms and input, so the same
+    result. Where there is no ``fork``, or with ``BONECAP_WORKERS=1`` (no child
+    processes, e.g. inside a multi-threaded host), it all runs here.
     """
-    import fast_simplification
+    def simplify():
+        import fast_simplification
 
-    def run():
         return fast_simplification.simplify(v, f, target_reduction=reduction)
 
+    def process(dv, df):
+        import trimesh
+
+        tm = trimesh.Trimesh(dv, df, process=True)
+        return np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64)
+
     if len(f) <= _SIMPLIFY_IN_CHILD_FACES:
-        return run()
+        return process(*simplify())
     from bonecap.parallel import fork_or_here
 
-    return fork_or_here(run)()
+    dv, df = fork_or_here(simplify)()
+    return fork_or_here(lambda: process(dv, df))()
 
 
 #: A dense surface above this many faces is first decimated in two halves (:func:`_presimplify_halves`).
@@ -2402,8 +2433,6 @@ def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: 
     edge groups, adjacency graph and mass properties had made this the phantom's
     peak (+140 MB over the field, 2026-11-26).
     """
-    import trimesh
-
     if len(faces) > max_faces:
         v32 = np.asarray(verts, dtype=np.float32)
         faces = np.asarray(faces, dtype=np.int32)         # (the decimation's own; the same result)
@@ -2417,12 +2446,7 @@ def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: 
         # folded into two coincident faces of opposite winding) dropped too, so that the meshes of the
         # phantoms that decimated before stay as they were (default seed 3's fascia had fins at all three)
         for frac, fins in ((1.0, False), (0.9, False), (0.8, False), (1.0, True), (0.9, True), (0.8, True)):
-            v, fc = _simplify(v32, faces, 1.0 - frac * max_faces / n_in)
-            # process=True: merge the vertices the decimation left coincident, drop degenerate faces
-            tm = trimesh.Trimesh(v, fc, process=True)
-            del v, fc
-            V_, F_ = np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64)
-            del tm
+            V_, F_ = _decimate(v32, faces, 1.0 - frac * max_faces / n_in)
             dec = _repair_pinches(*(_drop_fins(V_, F_) if fins else (V_, F_)))
             del V_, F_
             if dec is not None:
@@ -2432,6 +2456,8 @@ def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: 
             raise RuntimeError(f"could not decimate the {what} mesh to {max_faces} faces and keep it watertight")
         del v32
     elif not _closed_and_oriented(faces, len(verts)):
+        import trimesh
+
         tm = trimesh.Trimesh(verts, faces, process=False)
         trimesh.repair.fill_holes(tm)
         if not (tm.is_watertight and tm.is_winding_consistent):
@@ -2602,8 +2628,16 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     params["pose"] = pose
     timings["plan"] = time.perf_counter() - t0
     release_memory()
-    S, Mu, origin, h = _fields(sk, smp, plan, params, h, timings)
-    del smp                                   # the bone samples (~20 MB) are not used again
+    # the bone samples at the MRI pose and their margins are all that is used of them from here: the
+    # rest (~16 MB at the default preset) goes before the grid is filled, the others (~16 MB more)
+    # before its cavities are labelled -- both the main process's peak in turn
+    W, m_skin, m_mus = smp.world(sk), smp.m_skin, smp.m_mus
+    del smp
+    S, Fat, origin, cand, bm = _fields(W, m_skin, m_mus, plan, params, h, timings)
+    del W, m_skin, m_mus
+    release_memory()
+    S, Mu = _layers(S, Fat, cand, bm, h, timings)
+    del Fat, cand, bm
     t0 = time.perf_counter()
     # both dense surfaces first, then both decimations: the fields are freed before the decimation's
     # child process starts beside this one (the phase held ~400 MiB with them)

@@ -192,6 +192,7 @@ References
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -202,8 +203,6 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 import yaml
-from scipy.interpolate import CubicSpline
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from bonecap.errors import DataError, InputError
@@ -776,8 +775,12 @@ def _keyframes(t: np.ndarray, keys: Sequence[tuple[float, float]]) -> np.ndarray
     return out
 
 
-def _periodic(points: Sequence[tuple[float, float]]) -> CubicSpline:
+def _periodic(points: Sequence[tuple[float, float]]) -> "CubicSpline":  # noqa: F821
     """Periodic cubic spline through ``(percent of cycle, value)`` points (0 and 100 equal)."""
+    # scipy.interpolate and scipy.optimize are imported where they are used: the phantom's main
+    # process imports this module but makes its trials in a child, and the two held ~14 MiB there
+    from scipy.interpolate import CubicSpline
+
     x = np.array([p[0] for p in points], float) / 100.0
     y = np.array([p[1] for p in points], float)
     return CubicSpline(x, y, bc_type="periodic")
@@ -788,17 +791,26 @@ def _periodic(points: Sequence[tuple[float, float]]) -> CubicSpline:
 # *anatomically neutral* pelvis of the skeleton (Plug-in Gait reports it against a pelvis frame
 # tilted ~10 deg forward, hence ~8 deg less here); knee and ankle were then adjusted so that the
 # swing foot clears the floor (>= 0 mm, typically 5-20 mm) while the stance foot carries the body.
-_GAIT = {
-    "hip_flex": _periodic([(0, 22), (10, 20), (20, 13), (30, 5), (40, -4), (50, -13), (55, -16), (60, -13),
-                           (65, -6), (70, 3), (75, 12), (80, 20), (87, 26), (93, 26), (100, 22)]),
-    "hip_abd": _periodic([(0, 0), (20, -5), (50, -1), (65, 5), (82, 2), (100, 0)]),
-    "hip_rot": _periodic([(0, 0), (20, 4), (50, -1), (70, -5), (100, 0)]),
-    "knee_flex": _periodic([(0, 5), (8, 14), (15, 18), (22, 16), (32, 9), (42, 6), (50, 10), (55, 18), (60, 35),
-                            (65, 51), (72, 63), (78, 61), (85, 53), (91, 34), (96, 15), (100, 5)]),
-    "ankle_flex": _periodic([(0, 0), (6, -5), (12, -2), (20, 4), (30, 7), (40, 10), (46, 9), (52, 2), (57, -8),
-                             (62, -17), (67, -7), (73, 2), (80, 5), (88, 5), (100, 0)]),
-    "mtp_flex": _periodic([(0, 0), (40, 5), (55, 28), (62, 25), (70, 6), (78, 0), (100, 0)]),
+# The knots here; the splines are made on first use (:func:`_gait`).
+_GAIT_POINTS = {
+    "hip_flex": [(0, 22), (10, 20), (20, 13), (30, 5), (40, -4), (50, -13), (55, -16), (60, -13),
+                 (65, -6), (70, 3), (75, 12), (80, 20), (87, 26), (93, 26), (100, 22)],
+    "hip_abd": [(0, 0), (20, -5), (50, -1), (65, 5), (82, 2), (100, 0)],
+    "hip_rot": [(0, 0), (20, 4), (50, -1), (70, -5), (100, 0)],
+    "knee_flex": [(0, 5), (8, 14), (15, 18), (22, 16), (32, 9), (42, 6), (50, 10), (55, 18), (60, 35),
+                  (65, 51), (72, 63), (78, 61), (85, 53), (91, 34), (96, 15), (100, 5)],
+    "ankle_flex": [(0, 0), (6, -5), (12, -2), (20, 4), (30, 7), (40, 10), (46, 9), (52, 2), (57, -8),
+                   (62, -17), (67, -7), (73, 2), (80, 5), (88, 5), (100, 0)],
+    "mtp_flex": [(0, 0), (40, 5), (55, 28), (62, 25), (70, 6), (78, 0), (100, 0)],
 }
+
+
+@functools.lru_cache(maxsize=1)
+def _gait() -> dict[str, "CubicSpline"]:  # noqa: F821
+    """The gait curves (:data:`_GAIT_POINTS`) as periodic splines of the cycle fraction, made once."""
+    return {k: _periodic(v) for k, v in _GAIT_POINTS.items()}
+
+
 _TOE_OFF = 0.62
 _GAIT_CYCLE_S = 1.1
 
@@ -873,10 +885,11 @@ def trial_motion(name: str, table: JointTable, *, duration_scale: float = 1.0, r
         angles, twist = {}, {}
         for s, shift in (("r", 0.0), ("l", 0.5)):
             ph = (t / _GAIT_CYCLE_S + shift) % 1.0
-            angles[f"hip_{s}"] = np.stack([_GAIT["hip_flex"](ph), _GAIT["hip_abd"](ph), _GAIT["hip_rot"](ph)], 1)
-            angles[f"knee_{s}"] = np.stack([_GAIT["knee_flex"](ph), 0 * ph, 0 * ph], 1)
-            angles[f"ankle_{s}"] = np.stack([_GAIT["ankle_flex"](ph), 0 * ph, 0 * ph], 1)
-            angles[f"mtp_{s}"] = np.stack([_GAIT["mtp_flex"](ph), 0 * ph, 0 * ph], 1)
+            gait = _gait()
+            angles[f"hip_{s}"] = np.stack([gait["hip_flex"](ph), gait["hip_abd"](ph), gait["hip_rot"](ph)], 1)
+            angles[f"knee_{s}"] = np.stack([gait["knee_flex"](ph), 0 * ph, 0 * ph], 1)
+            angles[f"ankle_{s}"] = np.stack([gait["ankle_flex"](ph), 0 * ph, 0 * ph], 1)
+            angles[f"mtp_{s}"] = np.stack([gait["mtp_flex"](ph), 0 * ph, 0 * ph], 1)
             # arm swings against the leg of the same side
             angles[f"shoulder_{s}"] = np.stack([5 - 15 * np.cos(2 * np.pi * ph), 8 + 0 * ph, 0 * ph], 1)
             angles[f"elbow_{s}"] = np.stack([15 + 6 * (1 - np.cos(2 * np.pi * ph)), 0 * ph, 0 * ph], 1)
@@ -1105,6 +1118,47 @@ def _sole_pad(skeleton: Skeleton, table: JointTable, skin: Mesh | None) -> float
     return pad if 0.0 <= pad <= 60.0 else _NO_SKIN_PAD_MM
 
 
+def _lowest_points(T: np.ndarray, idx: Sequence[int], pts: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's lowest point of a foot: its index into ``concatenate(pts)`` and its lab height.
+
+    Parameters
+    ----------
+    T : ndarray (F, B, 4, 4)
+        Bone -> lab poses (Z-up lab, mm).
+    idx : sequence of int
+        The foot's bones (indices into ``T``'s second axis).
+    pts : sequence of ndarray (P_i, 3)
+        Their points in each bone's own frame (mm).
+
+    Returns
+    -------
+    low : ndarray (F,) of int
+    z_low : ndarray (F,)
+
+    Notes
+    -----
+    Heights only, one bone at a time: the full (F, P, 3) lab positions took ~100 MB
+    on the long trials, all the bones' heights at once ~110 MiB, the default
+    phantom's peak. The first lowest point on ties, as one ``argmin`` over all the
+    points would give.
+    """
+    frames = np.arange(T.shape[0])
+    low = z_low = None
+    first = 0
+    for i, p in zip(idx, pts):
+        Zi = p @ T[:, i, 2, :3].T + T[:, i, 2, 3]          # (P_i, F)
+        j = np.argmin(Zi, axis=0)
+        zj = Zi[j, frames]
+        del Zi
+        if low is None:
+            low, z_low = j + first, zj
+        else:
+            lower = zj < z_low                          # strictly: an earlier bone wins a tie
+            low, z_low = np.where(lower, j + first, low), np.where(lower, zj, z_low)
+        first += len(p)
+    return low, z_low
+
+
 def pose_trial(skeleton: Skeleton, table: JointTable, motion: TrialMotion, *, skin: Mesh | None = None
                ) -> tuple[np.ndarray, dict[str, Any]]:
     """Bone poses of a trial in the Z-up lab, feet on the floor.
@@ -1149,11 +1203,8 @@ def pose_trial(skeleton: Skeleton, table: JointTable, motion: TrialMotion, *, sk
         prev, nxt = np.maximum(frames - 1, 0), np.minimum(frames + 1, F - 1)
         for s in sides:
             idx, pts = feet[s]
-            # heights only (F, P): the full (F, P, 3) lab positions took ~100 MB on the long trials
-            Z = np.concatenate([p @ T[:, i, 2, :3].T + T[:, i, 2, 3] for i, p in zip(idx, pts)], axis=0).T
-            low = np.argmin(Z, axis=1)
-            lows.append(Z[frames, low])
-            del Z
+            low, z_low = _lowest_points(T, idx, pts)
+            lows.append(z_low)
             P_all = np.concatenate(pts)
             bone_of = np.concatenate([np.full(len(p), i) for i, p in zip(idx, pts)])
             P_low, b_low = P_all[low], bone_of[low]
@@ -1216,6 +1267,8 @@ def _arm_subskeleton(skeleton: Skeleton, bones: list[str]) -> Skeleton:
 
 def _touch_poses(skeleton: Skeleton, table: JointTable, skin: Mesh | None) -> dict[str, dict[str, np.ndarray]]:
     """Shoulder (flex, abd, rot), elbow flexion and twist for rest, hands-together and hands-on-hips."""
+    from scipy.optimize import least_squares        # (here, see _periodic)
+
     anat = table.anat
     up, right, ant = anat[:, 1], anat[:, 2], anat[:, 0]
     shoulders = {s: _apply(skeleton.bones[table.joints[f"shoulder_{s}"].parent].bone_to_world,
