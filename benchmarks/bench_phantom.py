@@ -4,13 +4,15 @@ Usage: ``python benchmarks/bench_phantom.py [--preset default|tiny|both] [--seed
 
 Each run is a fresh ``python -m bonecap phantom`` process (imports included, as a user runs it),
 so its peak resident memory is its own: ``ru_maxrss`` of the finished child (the largest of the
-process, the meshing workers it forks, the trials child and the interpreter that decimates the
-body surfaces at the default preset). Those run beside the main process, so the machine's total
+process and the children it forks: the skeleton's meshing workers, the trials child, the children
+that decimate the body surfaces at the default preset). Some run beside the main process, so the machine's total
 is measured too: the proportional set size (PSS: shared pages split among the processes sharing
 them) summed over the process tree, sampled every 50 ms (Linux; NaN elsewhere). Both in MiB
 (2**20 bytes). Prints a markdown table: wall time, user + system CPU (the machine is shared, so
 wall times vary with the load; CPU time much less), the two peaks, the stage timings from
-``phantom.json`` and the load average before the run.
+``phantom.json`` and the load average before the run. Run it alone: another Python process that maps
+the same libraries (a second phantom, a test run) takes its share of their pages, and the tree's PSS
+reads low by up to ~20 MiB.
 """
 
 from __future__ import annotations

@@ -2022,7 +2022,8 @@ def _fields(W: np.ndarray, m_skin: np.ndarray, m_mus: np.ndarray, plan: _Plan, p
             timings: dict) -> tuple:
     """The skin field and the fat thickness on a regular grid (``field[i, j, k]`` at
     ``origin + h (i, j, k)``), model frame, with the bone term of the fascia at its candidate voxels:
-    ``(S, Fat, origin, cand, bm)``. :func:`_layers` makes the skin and fascia fields of them.
+    ``(S, Fat, origin, cand_all, bm_all)``, the last two lists of per-slab arrays (flat grid indices,
+    bone distance minus the fascia margin). :func:`_layers` makes the skin and fascia fields of them.
 
     ``W``: the bone samples in the model frame at the MRI pose (``_Samples.world``),
     ``m_skin`` / ``m_mus``: their skin and fascia margins (mm).
