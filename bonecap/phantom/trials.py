@@ -778,7 +778,7 @@ def _keyframes(t: np.ndarray, keys: Sequence[tuple[float, float]]) -> np.ndarray
 def _periodic(points: Sequence[tuple[float, float]]) -> "CubicSpline":  # noqa: F821
     """Periodic cubic spline through ``(percent of cycle, value)`` points (0 and 100 equal)."""
     # scipy.interpolate and scipy.optimize are imported where they are used: the phantom's main
-    # process imports this module but makes its trials in a child, and the two held ~14 MiB there
+    # process imports this module but makes its trials in a child, and the two held ~9 MiB there
     from scipy.interpolate import CubicSpline
 
     x = np.array([p[0] for p in points], float) / 100.0
