@@ -2022,8 +2022,8 @@ def _fields(W: np.ndarray, m_skin: np.ndarray, m_mus: np.ndarray, plan: _Plan, p
             timings: dict) -> tuple:
     """The skin field and the fat thickness on a regular grid (``field[i, j, k]`` at
     ``origin + h (i, j, k)``), model frame, with the bone term of the fascia at its candidate voxels:
-    ``(S, Fat, origin, cand_all, bm_all)``, the last two lists of per-slab arrays (flat grid indices,
-    bone distance minus the fascia margin). :func:`_layers` makes the skin and fascia fields of them.
+    ``(S, Fat, origin, cand, bm)``, the last two the candidates' flat grid indices and their bone
+    distance minus the fascia margin. :func:`_layers` makes the skin and fascia fields of them.
 
     ``W``: the bone samples in the model frame at the MRI pose (``_Samples.world``),
     ``m_skin`` / ``m_mus``: their skin and fascia margins (mm).
@@ -2165,10 +2165,10 @@ def _fields(W: np.ndarray, m_skin: np.ndarray, m_mus: np.ndarray, plan: _Plan, p
     timings["segments"] = t_seg
     timings["bone_candidates"] = float(n_cand)
     timings["bone_distance"] = t_bone
-    return S, Fat, origin, cand_all, bm_all
+    return S, Fat, origin, np.concatenate(cand_all), np.concatenate(bm_all)
 
 
-def _layers(S: np.ndarray, Fat: np.ndarray, cand_all: list, bm_all: list, h: float,
+def _layers(S: np.ndarray, Fat: np.ndarray, cand: np.ndarray, bm: np.ndarray, h: float,
             timings: dict) -> tuple[np.ndarray, np.ndarray]:
     """The skin and fascia fields from :func:`_fields`' results: ``(S, Mu)``, in place of ``S`` and ``Fat``.
 
@@ -2182,10 +2182,6 @@ def _layers(S: np.ndarray, Fat: np.ndarray, cand_all: list, bm_all: list, h: flo
     t0 = time.perf_counter()
     shape = S.shape
     _fill_cavities(S, -h)
-    cand = np.concatenate(cand_all)
-    bm = np.concatenate(bm_all)
-    cand_all.clear()                          # the caller's lists: their slabs go now
-    bm_all.clear()
     fmin = np.float32(_f_min(h))
     Mu = Fat                                  # in place: fascia = skin offset inward by the fat
     for y0, y1 in _y_slabs(shape):
@@ -2196,7 +2192,6 @@ def _layers(S: np.ndarray, Fat: np.ndarray, cand_all: list, bm_all: list, h: flo
         del s32, mu
     # the bone term at the candidates: min(fascia, bone distance - muscle margin)
     Mu.flat[cand] = np.minimum(Mu.flat[cand].astype(np.float32), bm)
-    del cand, bm
     for y0, y1 in _y_slabs(shape):
         np.maximum(Mu[:, y0:y1], (S[:, y0:y1].astype(np.float32) + fmin).astype(np.float16), out=Mu[:, y0:y1])
     _close_field(S)
