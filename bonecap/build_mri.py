@@ -46,7 +46,7 @@ from bonecap.errors import DataError, InputError
 from bonecap.io import load_yaml
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
-from bonecap.parallel import Pending, default_workers, fork_map, fork_start
+from bonecap.parallel import Pending, default_workers, fork_child, fork_map, fork_start
 from bonecap.skeleton.kinematics import subtree as _subtree
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
@@ -575,6 +575,22 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     qc : callable
         ``qc(folder)`` writes the QC pictures into ``folder/qc``.
     """
+    # What of the forearm stacks needs nothing from the stations (reading them, their body masks,
+    # their capsules: ~8 s of CPU) starts now in a child, beside the stages that leave a core idle
+    reading = start_reading_stacks(list(forearm_poses)) if forearm_poses else None
+    try:
+        return _build_from_mri(mri, generic=generic, marker_set=marker_set, static=static,
+                               forearm_poses=forearm_poses, seeds=seeds, labels=labels, subject_name=subject_name,
+                               functional=functional, reading=reading)
+    except BaseException:
+        if reading is not None and hasattr(reading, "cancel"):
+            reading.cancel()
+        raise
+
+
+def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, labels, subject_name, functional,
+                    reading):
+    """:func:`build_from_mri`'s stages; ``reading``: :func:`start_reading_stacks` of ``forearm_poses``."""
     from bonecap.io.c3d import read_c3d
     from bonecap.markers import check_marker_set, load_marker_set
     from bonecap.meshing import mesh_from_slices, meshes_from_labels
@@ -757,8 +773,9 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     # in worker processes while the markers are placed here (the workers see the skeleton as it is now)
     registering = None
     if forearm_poses:
-        side = _stack_side(forearm_poses[0], personal)
-        registering = start_forearm_registration(list(forearm_poses), personal, side)
+        read = reading()
+        side = _stack_side(forearm_poses[0], personal, read[0])
+        registering = start_forearm_registration(list(forearm_poses), personal, side, read=read)
     try:
         marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials)
     except BaseException:
@@ -786,7 +803,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         except DataError as exc:
             # the stacks could not be read as three poses of this forearm: the
             # paper's coefficients stay, and the report says why
-            forearm_report = {"used": False, "reason": str(exc), "capsules": forearm_capsules(forearm_poses)}
+            forearm_report = {"used": False, "reason": str(exc), "capsules": forearm_capsules(forearm_poses, read)}
         lap("forearm")
     bar.close()
 
@@ -1635,20 +1652,74 @@ def _landmark(b, name: str, T: np.ndarray) -> np.ndarray | None:
     return None if p is None else T[:3, :3] @ p + T[:3, 3]
 
 
-def forearm_capsules(dirs) -> dict[str, list]:
-    """Capsule centres (LPS mm) found in each forearm stack, keyed by the stack's folder name."""
+def forearm_capsules(dirs, read: list | None = None) -> dict[str, list]:
+    """Capsule centres (LPS mm) found in each forearm stack, keyed by the stack's folder name.
+
+    ``read``: :func:`start_reading_stacks`'s result for ``dirs``, whose capsules are taken as found.
+    """
     from bonecap.segmentation.capsules import find_capsules
 
     out = {}
-    for d in dirs:
+    for i, d in enumerate(dirs):
+        if read is not None:
+            out[Path(d).name] = _stack_read(read[i])[2]
+            continue
         v = max(load_stations([d]), key=lambda x: x.data.size)
         out[Path(d).name] = find_capsules(v)[0].tolist()
     return out
 
 
-def _stack_side(path, personal: Skeleton) -> str:
-    """Which forearm a stack shows: right when its centre lies on the body's right (LPS -x)."""
-    v = load_stations([path])[0]
+def _read_stack(d) -> tuple[Volume, np.ndarray, list]:
+    """One forearm stack's largest series, its body mask and the capsule centres found in it (LPS mm)."""
+    from bonecap.segmentation.capsules import find_capsules
+    from bonecap.segmentation.skin import segment_body
+
+    v = max(load_stations([d]), key=lambda x: x.data.size)
+    return v, segment_body(v), find_capsules(v)[0].tolist()
+
+
+def start_reading_stacks(dirs: list[str | os.PathLike]):
+    """Start reading the forearm stacks (:func:`_read_stack`) in a forked child; returns ``join()``.
+
+    They need nothing from the stations, so build-subject starts them first, and the child works
+    beside the stages that leave a core idle (loading and registering the stations, the skin's
+    mesh, the seeds, the bone meshes). ``join()`` gives one entry per stack: its
+    ``(volume, body mask, capsule centres)``, or the exception reading it raised, which
+    :func:`_stack_read` raises where the stack is used -- as reading it there would have. Without
+    worker processes (``BONECAP_WORKERS=1``, no ``fork``) the stacks are read at ``join()``.
+    """
+    dirs = list(dirs)
+
+    def read_all() -> list:
+        out: list = []
+        for d in dirs:
+            try:
+                out.append(_read_stack(d))
+            except Exception as exc:  # noqa: BLE001 - raised where the stack is used
+                out.append(exc)
+        return out
+
+    if default_workers() > 1:
+        try:
+            return fork_child(read_all)
+        except RuntimeError:  # no fork here
+            pass
+    return read_all
+
+
+def _stack_read(entry):
+    """An entry of :func:`start_reading_stacks`'s result: the read stack, or its error raised."""
+    if isinstance(entry, BaseException):
+        raise entry
+    return entry
+
+
+def _stack_side(path, personal: Skeleton, read=None) -> str:
+    """Which forearm a stack shows: right when its centre lies on the body's right (LPS -x).
+
+    ``read``: the stack's :func:`start_reading_stacks` entry (else it is read here).
+    """
+    v = _stack_read(read)[0] if read is not None else load_stations([path])[0]
     centre = v.index_to_world(np.array([(np.array(v.shape) - 1) / 2.0]))[0]
     mid = personal.bones[personal.names[0]].bone_to_world[:3, 3]
     return "r" if centre[0] < mid[0] else "l"
@@ -1760,7 +1831,7 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
 
 
 def start_forearm_registration(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                               max_icp_mm: float = 6.0) -> Pending:
+                               max_icp_mm: float = 6.0, read: list | None = None) -> Pending:
     """Start registering the personal forearm bones into each stack, in worker processes.
 
     The stacks are independent of each other and of the markers: build-subject
@@ -1768,30 +1839,30 @@ def start_forearm_registration(dirs: list[str | os.PathLike], personal: Skeleton
     :func:`fit_forearm_from_stacks` (``registered``). All three run at once even
     on two cores (two rounds of one and two stacks take 2/3 of the serial
     time, three processes sharing two cores about half of it). The workers see
-    ``personal`` as it is now.
+    ``personal`` as it is now. ``read``: the stacks already read
+    (:func:`start_reading_stacks`'s result for ``dirs``); else each worker reads its own.
     """
-    return fork_start(lambda d: _register_stack(d, personal, side, max_icp_mm), list(dirs),
-                      workers=len(dirs) if default_workers() > 1 else 1)
+    dirs = list(dirs)
+    entries = list(read) if read is not None else [None] * len(dirs)
+    return fork_start(lambda de: _register_stack(de[0], personal, side, max_icp_mm, read=de[1]),
+                      list(zip(dirs, entries)), workers=len(dirs) if default_workers() > 1 else 1)
 
 
-def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
+def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float, read=None):
     """One forearm stack: ulna and radius segmented and the personal bones registered onto them.
 
+    ``read``: the stack's :func:`start_reading_stacks` entry (else it is read here).
     Returns ``(Ts, report, capsules)``: each bone's pose in the stack (bone -> LPS), the stack's
     report entries (ICP residuals, the radius seed's turn) and the capsule centres found (LPS).
     """
     from bonecap.meshing import mesh_from_slices
     from bonecap.segmentation.bones import keep_continuous, marrow_sections, segment_bones
-    from bonecap.segmentation.capsules import find_capsules
-    from bonecap.segmentation.skin import segment_body
     from bonecap.skeleton.warp import rigid_icp
 
     ulna_n, radius_n, hum_n = f"ulna_{side}", f"radius_{side}", f"humerus_{side}"
     U, Rb = personal.bones[ulna_n], personal.bones[radius_n]
     report: dict[str, Any] = {}
-    vols = load_stations([d])
-    v = max(vols, key=lambda x: x.data.size)
-    body = segment_body(v)
+    v, body, centres = _stack_read(read if read is not None else _read_stack(d))
     # each bone's own axis: the ulna from the elbow to its head, the radius from its head to the wrist
     # (elbow -> distal radio-ulnar joint, as both had, is the ulna's line: the two seeds coincided), and
     # the humerus (shoulder -> elbow): a stack reaching above the elbow holds the distal humerus, and
@@ -1853,8 +1924,8 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float):
         if np.mean(res) > max_icp_mm:
             raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
                             f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
-    centres, _ = find_capsules(v)  # its own body mask: the skin mask holds the capsules
-    return Ts, report, centres.tolist()
+    # the capsules were found with their own body mask (find_capsules): the skin mask holds them
+    return Ts, report, centres
 
 
 def _swept_by(points: np.ndarray, axis: tuple[np.ndarray, np.ndarray], volume: Volume, where: np.ndarray,

@@ -43,6 +43,7 @@ from scipy import ndimage
 
 from bonecap.model import Mesh
 from bonecap.parallel import fork_map
+from bonecap.segmentation._distance import inplane_edt
 
 __all__ = ["mesh_from_slices", "meshes_from_labels", "surface_distance"]
 
@@ -81,15 +82,13 @@ def _check_pieces(pieces) -> list[tuple[np.ndarray, np.ndarray]]:
 def _slice_signed_distance(mask: np.ndarray, spacing: np.ndarray, clip: float, sigma_px: float) -> np.ndarray:
     """In-plane signed distance (mm, negative inside) of every slice ``mask[:, :, k]``, clipped to ``+-clip``.
 
-    One 3-D EDT with a huge sampling along ``k`` equals a 2-D EDT per slice (a
-    voxel of another slice is never nearer than ``clip``), without a loop.
+    A slice with nothing inside (or nothing outside) is at ``+clip`` (``-clip``) throughout.
     """
     m = mask
-    far = 1e3 * clip
-    samp = (float(spacing[0]), float(spacing[1]), far)
-    out = ndimage.distance_transform_edt(~m, sampling=samp).astype(np.float32)
+    samp = (float(spacing[0]), float(spacing[1]))
+    out = inplane_edt(~m, samp).astype(np.float32)
     # inside distance only where inside (edt of the mask is 0 outside)
-    out -= ndimage.distance_transform_edt(m, sampling=samp).astype(np.float32)
+    out -= inplane_edt(m, samp).astype(np.float32)
     np.clip(out, -clip, clip, out=out)
     if sigma_px > 0:
         # a half-pixel Gaussian takes the staircase of a binary contour out of the distance

@@ -170,7 +170,8 @@ def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], An
     Returns
     -------
     callable
-        ``join()``.
+        ``join()``; ``join.cancel()`` stops the child instead (the caller failed
+        meanwhile and will not ask for the result).
 
     Raises
     ------
@@ -226,6 +227,15 @@ def fork_child(fn: Callable[[], Any], *, daemon: bool = True) -> Callable[[], An
         if status == "error":
             raise value
         return value
+
+    def cancel():
+        # a child whose result is larger than the pipe's buffer waits in send() until joined
+        if proc.is_alive():
+            proc.terminate()
+        proc.join()
+        recv.close()
+
+    join.cancel = cancel
     return join
 
 

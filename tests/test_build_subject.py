@@ -43,6 +43,25 @@ def test_forearm_stacks_that_do_not_fit_leave_the_paper_model(built):
     assert not read_subject(out, load_meshes=False).forearm      # empty: the paper's coefficients
 
 
+def test_forearm_stacks_read_beside_the_stations_as_here(phantom, tmp_path):
+    """The stacks are read in a child while the stations are worked on: the same volume, body mask and
+    capsules as read here; a stack that cannot be read raises its own error where it is used."""
+    from bonecap.build_mri import _read_stack, _stack_read, start_reading_stacks
+    from bonecap.errors import InputError
+
+    stack = phantom / "mri/forearm_99.5"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    read = start_reading_stacks([stack, empty])()
+    v, body, caps = _read_stack(stack)
+    v2, body2, caps2 = _stack_read(read[0])
+    assert np.array_equal(v.data, v2.data) and np.array_equal(v.affine, v2.affine)
+    assert body.any() and np.array_equal(body, body2)
+    assert len(caps) >= 1 and caps2 == caps
+    with pytest.raises(InputError, match="empty: no DICOM files found"):
+        _stack_read(read[1])
+
+
 def _surface_mean(a, b) -> float:
     from bonecap.evaluate import _surface_stats
 

@@ -201,3 +201,25 @@ def test_bad_input():
         meshes_from_labels([(mask.astype(float), A)], {"a": 1})
     with pytest.raises(ValueError, match="positive integers"):
         meshes_from_labels([(mask.astype(np.int16), A)], {"a": 0})
+
+
+def test_inplane_edt_equals_one_transform_with_a_huge_slice_spacing():
+    """The slice-by-slice distances are the 3-D transform's with the slices kept apart (what the meshing
+    and the skin's edge level used before), and a slice with no False voxel has none (inf)."""
+    from scipy import ndimage
+
+    from bonecap.segmentation._distance import inplane_edt
+
+    rng = np.random.default_rng(3)
+    m = ndimage.binary_opening(rng.random((40, 31, 7)) < 0.7, structure=np.ones((3, 3, 1)))
+    m[:, :, 2] = True                       # nothing outside in this slice
+    m[:, :, 4] = False                      # nothing inside in this one
+    d = inplane_edt(m, (1.8, 0.9))
+    old = ndimage.distance_transform_edt(m, sampling=(1.8, 0.9, 1e6))
+    finite = np.isfinite(d)
+    assert not finite[:, :, 2].any() and finite[:, :, [0, 1, 3, 4, 5, 6]].all()
+    assert old[:, :, 2].min() > 1e5                              # the old way: the huge spacing
+    np.testing.assert_array_equal(d[finite], old[finite])
+    assert (d[:, :, 4] == 0).all() and (d[~m] == 0).all() and (d[m & finite] > 0).all()
+    with pytest.raises(ValueError, match="3-D"):
+        inplane_edt(m[:, :, 0], (1.0, 1.0))

@@ -145,3 +145,18 @@ def test_fork_child_returns_its_result_raises_its_error_and_may_fork_workers():
 
 def _pid_of(_):
     return os.getpid()
+
+
+def test_fork_child_cancel_stops_a_child_the_caller_no_longer_waits_for():
+    """A child whose result is larger than the pipe's buffer waits in send() until joined; a caller
+    that failed meanwhile cancels it instead, and the child is gone."""
+    import time
+
+    from bonecap.parallel import fork_child
+
+    join = fork_child(lambda: (os.getpid(), np.zeros(1_000_000)))
+    time.sleep(0.5)
+    join.cancel()
+    import multiprocessing as mp
+
+    assert not [p for p in mp.active_children() if p.is_alive()]

@@ -26,6 +26,7 @@ from scipy import ndimage
 from skimage.filters import threshold_otsu
 
 from bonecap.model import Volume
+from bonecap.segmentation._distance import inplane_edt
 
 __all__ = ["body_threshold", "edge_threshold", "segment_body"]
 
@@ -134,10 +135,10 @@ def edge_threshold(smoothed: np.ndarray, body: np.ndarray, spacing, inner_mm: tu
         The threshold; Otsu's own (``smoothed`` at the mask edge) when either
         ring is empty.
     """
-    # in-plane distances only: a huge slice spacing keeps the transform within each slice
-    samp = (float(spacing[0]), float(spacing[1]), 1e6)
-    d_in = ndimage.distance_transform_edt(body, sampling=samp)
-    d_out = ndimage.distance_transform_edt(~body, sampling=samp)
+    # in-plane distances only, slice by slice
+    samp = (float(spacing[0]), float(spacing[1]))
+    d_in = inplane_edt(body, samp)
+    d_out = inplane_edt(~body, samp)
     inner = smoothed[(d_in >= inner_mm[0]) & (d_in <= inner_mm[1])]
     outer = smoothed[(d_out >= outer_mm[0]) & (d_out <= outer_mm[1])]
     if inner.size < 100 or outer.size < 100:
