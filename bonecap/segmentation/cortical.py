@@ -563,8 +563,13 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     if profile_sigma_px > 0:
         img = ndimage.gaussian_filter(img, profile_sigma_px, mode="nearest")
     mar = marrow[box]
-    depth = ndimage.distance_transform_edt(np.pad(mar, 1))[1:-1, 1:-1]
-    centre = np.array(np.unravel_index(int(np.argmax(depth)), mar.shape), float)
+    # the marrow's deepest pixel, its distance transform on the marrow's own box and a ring of
+    # background: the same distances as over the whole crop (a pixel beyond the ring is no nearer
+    # than the ring straight across) on a box ~50x smaller; the first maximum in the same order
+    mi, mj = ii - lo[0], jj - lo[1]
+    i0, j0 = int(mi.min()), int(mj.min())
+    depth = ndimage.distance_transform_edt(np.pad(mar[i0:int(mi.max()) + 1, j0:int(mj.max()) + 1], 1))[1:-1, 1:-1]
+    centre = np.array(np.unravel_index(int(np.argmax(depth)), depth.shape), float) + (i0, j0)
     marrow_level = float(np.median(img[mar]))
     m = float(muscle)
     # The marrow was found at a low threshold (a little above muscle); for the union below
