@@ -575,22 +575,43 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     qc : callable
         ``qc(folder)`` writes the QC pictures into ``folder/qc``.
     """
-    # What of the forearm stacks needs nothing from the stations (reading them, their body masks,
-    # their capsules: ~8 s of CPU) starts now in a child, beside the stages that leave a core idle
+    # Work that needs only the images runs in children beside the stages that leave a core idle
+    # (loading the stations, the seeds, the bone meshes): what of the forearm stacks needs nothing
+    # from the stations (reading them, their body masks, their capsules: ~8 s of CPU) starts now,
+    # the capsule search of the stations once they are registered (~4 s). ``beside`` holds their
+    # joins, stopped if the build fails.
+    beside: list = []
     reading = start_reading_stacks(list(forearm_poses)) if forearm_poses else None
+    if reading is not None:
+        beside.append(reading)
     try:
         return _build_from_mri(mri, generic=generic, marker_set=marker_set, static=static,
                                forearm_poses=forearm_poses, seeds=seeds, labels=labels, subject_name=subject_name,
-                               functional=functional, reading=reading)
+                               functional=functional, reading=reading, beside=beside)
     except BaseException:
-        if reading is not None and hasattr(reading, "cancel"):
-            reading.cancel()
+        for join in beside:
+            if hasattr(join, "cancel"):
+                join.cancel()
         raise
 
 
+def _start_beside(fn):
+    """``fn()`` in a forked child that works beside this process; returns its ``join()``.
+
+    Without worker processes (``BONECAP_WORKERS=1``, no ``fork``) ``fn`` runs at ``join()``.
+    """
+    if default_workers() > 1:
+        try:
+            return fork_child(fn)
+        except RuntimeError:  # no fork here
+            pass
+    return fn
+
+
 def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, labels, subject_name, functional,
-                    reading):
-    """:func:`build_from_mri`'s stages; ``reading``: :func:`start_reading_stacks` of ``forearm_poses``."""
+                    reading, beside):
+    """:func:`build_from_mri`'s stages; ``reading``: :func:`start_reading_stacks` of ``forearm_poses``;
+    ``beside``: the children started, to which the stations' capsule search is added."""
     from bonecap.io.c3d import read_c3d
     from bonecap.markers import check_marker_set, load_marker_set
     from bonecap.meshing import mesh_from_slices, meshes_from_labels
@@ -643,6 +664,9 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
             raise DataError(str(exc), mri[0] if len(mri) == 1 else None) from None
     lap("stations")
     bar.update()
+    # the capsules of the stations (the markers' stage names them) need only the registered images
+    capsule_search = _start_beside(lambda: _station_capsules(vols))
+    beside.append(capsule_search)
 
     # 2. skin
     bar.set_postfix_str("skin")
@@ -777,7 +801,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         side = _stack_side(forearm_poses[0], personal, read[0])
         registering = start_forearm_registration(list(forearm_poses), personal, side, read=read)
     try:
-        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials)
+        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials,
+                                        capsule_search=capsule_search)
     except BaseException:
         if registering is not None:
             registering.close()
@@ -1063,11 +1088,23 @@ def reframe_subject(subject, frames: dict[str, np.ndarray]) -> None:
         sk.bones[b] = reframe_bone(sk.bones[b], T_new)
 
 
-def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, functional=()) -> dict[str, Any]:
+def _station_capsules(vols: list[Volume]) -> np.ndarray:
+    """Capsule centres (LPS mm) found in the stations, one for each capsule the overlaps show twice."""
+    from bonecap.segmentation.capsules import find_capsules
+
+    found = [find_capsules(v)[0] for v in vols]
+    centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
+    # a capsule in the overlap of two stations is found in both: one capsule
+    return _merge_close(centres, 4.0)
+
+
+def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, functional=(),
+                    capsule_search=None) -> dict[str, Any]:
     """Markers on the personal skin over their landmarks; capsules where found; the static trial binds.
 
     ``functional``: ``(trial, path)`` of movement trials whose knee flexion corrects the femurs' twist
-    (:func:`bonecap.build_subject.knee_flexion_twist`)."""
+    (:func:`bonecap.build_subject.knee_flexion_twist`). ``capsule_search``: the join of
+    :func:`_station_capsules` of ``vols`` started earlier (else the stations are searched here)."""
     from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, STATIC_ROBUST_ROUNDS,
                                        bind_static, capsule_static_disagreement, functional_twists,
                                        joint_consistent, neutral_twist, pose_to_static, static_markers,
@@ -1088,35 +1125,26 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     placed = _onto_skin(placed, subject.skin, sk, mset)
     report: dict[str, Any] = {}
     # capsules
-    try:
-        from bonecap.segmentation.capsules import find_capsules
-    except ImportError:  # pragma: no cover - the module ships with bonecap
-        find_capsules = None
-    capsule_names: dict[str, np.ndarray] = {}
-    if find_capsules is not None:
-        found = fork_map(lambda v: find_capsules(v)[0], vols)
-        centres = np.concatenate([c for c in found if len(c)]) if any(len(c) for c in found) else np.zeros((0, 3))
-        # a capsule in the overlap of two stations is found in both: one capsule
-        centres = _merge_close(centres, 4.0)
-        capsule_names = name_capsules(centres, placed)
-        report["capsules_found"] = int(len(centres))
-        report["capsules_matched"] = sorted(capsule_names)
-        if capsule_names and subject.skin is not None:
-            capsule_names = capsules_to_markers(capsule_names, subject.skin)
-            # the hands the scan did not measure: turned and sized onto their capsules, then their
-            # markers placed again and every capsule named again (a finger capsule that lay too far
-            # from its marker, or was taken by another's, on the template's hand is found now)
-            sk, posed = pose_from_capsules(sk, mset, capsule_names)
-            subject.skeleton = sk
-            report["capsule_posed_segments"] = {
-                r: {k: round(v, 2) if isinstance(v, float) else v for k, v in d.items()} for r, d in posed.items()}
-            turned = [r for r, d in posed.items() if d["applied"]]
-            if turned:
-                moved = {b for r in turned for b in _subtree(sk, r)}
-                again = [n for n in names if mset.markers[n].bone in moved]
-                placed.update(_onto_skin(place_markers(mset, sk, again), subject.skin, sk, mset))
-                capsule_names = capsules_to_markers(name_capsules(centres, placed), subject.skin)
-                report["capsules_matched"] = sorted(capsule_names)
+    centres = capsule_search() if capsule_search is not None else _station_capsules(vols)
+    capsule_names = name_capsules(centres, placed)
+    report["capsules_found"] = int(len(centres))
+    report["capsules_matched"] = sorted(capsule_names)
+    if capsule_names and subject.skin is not None:
+        capsule_names = capsules_to_markers(capsule_names, subject.skin)
+        # the hands the scan did not measure: turned and sized onto their capsules, then their
+        # markers placed again and every capsule named again (a finger capsule that lay too far
+        # from its marker, or was taken by another's, on the template's hand is found now)
+        sk, posed = pose_from_capsules(sk, mset, capsule_names)
+        subject.skeleton = sk
+        report["capsule_posed_segments"] = {
+            r: {k: round(v, 2) if isinstance(v, float) else v for k, v in d.items()} for r, d in posed.items()}
+        turned = [r for r, d in posed.items() if d["applied"]]
+        if turned:
+            moved = {b for r in turned for b in _subtree(sk, r)}
+            again = [n for n in names if mset.markers[n].bone in moved]
+            placed.update(_onto_skin(place_markers(mset, sk, again), subject.skin, sk, mset))
+            capsule_names = capsules_to_markers(name_capsules(centres, placed), subject.skin)
+            report["capsules_matched"] = sorted(capsule_names)
     landmark_local = {}     # over the landmarks, for a capsule binding the static refutes
     for n in names:
         m = mset.markers[n]
@@ -1699,12 +1727,7 @@ def start_reading_stacks(dirs: list[str | os.PathLike]):
                 out.append(exc)
         return out
 
-    if default_workers() > 1:
-        try:
-            return fork_child(read_all)
-        except RuntimeError:  # no fork here
-            pass
-    return read_all
+    return _start_beside(read_all)
 
 
 def _stack_read(entry):
