@@ -117,7 +117,8 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
     static_lab : ndarray (M, 3)
         The same markers measured in the lab (mm).
     converge : bool, default True
-        Sweep until converged (:data:`STATIC_TOL_MM`); False: the six sweeps a
+        Solve to the minimum (:data:`STATIC_TOL_MM`; sweeps, then Gauss-Newton
+        steps: ``solve_lsq(newton=True)``); False: the six sweeps a
         trial gets, which stop near the skeleton's reference pose -- what a
         template whose markers were only placed by the manual needs (see
         :func:`build_from_static`).
@@ -144,7 +145,9 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
 
     if robust_rounds < 0:
         raise ValueError(f"robust_rounds must be >= 0, got {robust_rounds}")
-    sweeps = dict(n_sweeps=STATIC_MAX_SWEEPS, tol_mm=STATIC_TOL_MM) if converge else {}
+    # converged by Gauss-Newton steps from where the sweeps slow down (a static took ~1 400 single-frame
+    # fits a round to creep to 1e-3 mm, which left the femora 0.12 deg short of the minimum)
+    sweeps = dict(n_sweeps=STATIC_MAX_SWEEPS, tol_mm=STATIC_TOL_MM, newton=True) if converge else {}
     weights = None
     for _ in range(robust_rounds + 1):
         motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], weights=weights,

@@ -171,6 +171,57 @@ def test_sweeps_until_converged():
             solve_lsq(skel, MARKER_BONES, local, markers, tol_mm=bad)
 
 
+def test_newton_steps_reach_the_minimum_the_sweeps_creep_to():
+    """solve_lsq(newton=True): a few sweeps, then Gauss-Newton on all segments at once -- the same poses
+    as thousands of sweeps, in far fewer fits; each segment's objective has no downhill direction left."""
+    import bonecap.motion.lsq as lsq
+
+    skel, _, markers, rng = truth_motion(F=4, seed=1)
+    local = MARKER_LOCAL.copy()
+    local[4:8] += rng.normal(0, 6, (4, 3))
+    count = {"fits": 0}
+    fit = lsq._fit_qcp
+
+    def counted(*a, **k):
+        count["fits"] += 1
+        return fit(*a, **k)
+
+    try:
+        lsq._fit_qcp = counted
+        swept = solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=20000, tol_mm=1e-7).transforms
+        n_swept, count["fits"] = count["fits"], 0
+        stepped = solve_lsq(skel, MARKER_BONES, local, markers, n_sweeps=20000, tol_mm=1e-7, newton=True)
+        n_stepped = count["fits"]
+    finally:
+        lsq._fit_qcp = fit
+    assert np.abs(stepped.transforms - swept).max() < 1e-3
+    assert n_stepped < n_swept / 5
+    # without tol_mm the option does nothing (six sweeps)
+    assert np.array_equal(solve_lsq(skel, MARKER_BONES, local, markers, newton=True).transforms,
+                          solve_lsq(skel, MARKER_BONES, local, markers).transforms)
+
+    # no small turn of a bone about its own origin lowers the objective of the solved poses
+    def objective(T):
+        Tm = T[:, [skel.names.index(b) for b in MARKER_BONES]]
+        pred = np.einsum("fmij,mj->fmi", Tm[..., :3, :3], local) + Tm[..., :3, 3]
+        out = ((pred - markers) ** 2).sum(axis=(1, 2))
+        for child, parent, joint in (("thigh", "pelvis", "hip"), ("shank", "thigh", "knee"), ("foot", "shank", "ankle")):
+            c, p = skel.names.index(child), skel.names.index(parent)
+            a = T[:, c, :3, :3] @ skel.bones[child].joint_centres[joint] + T[:, c, :3, 3]
+            b = T[:, p, :3, :3] @ skel.bones[parent].joint_centres[joint] + T[:, p, :3, 3]
+            out = out + lsq.DEFAULT_JOINT_WEIGHT * ((a - b) ** 2).sum(-1)
+        return out
+
+    T = stepped.transforms
+    base = objective(T)
+    for b in range(len(skel.names)):
+        for axis in np.eye(3):
+            for sign in (-1, 1):
+                Tp = T.copy()
+                Tp[:, b, :3, :3] = Rotation.from_rotvec(sign * 1e-4 * axis).as_matrix() @ T[:, b, :3, :3]
+                assert (objective(Tp) >= base - 1e-6).all()
+
+
 def test_input_checks():
     skel, _, markers, _ = truth_motion(F=5)
     with pytest.raises(ValueError, match="marker_local"):
