@@ -580,19 +580,29 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     # from the stations (reading them, their body masks, their capsules: ~8 s of CPU) starts now,
     # the capsule search of the stations once they are registered (~4 s). ``beside`` holds their
     # joins, stopped if the build fails.
+    import contextlib
+
+    from bonecap.parallel import one_blas_thread
+
     beside: list = []
     reading = start_reading_stacks(list(forearm_poses)) if forearm_poses else None
     if reading is not None:
         beside.append(reading)
-    try:
-        return _build_from_mri(mri, generic=generic, marker_set=marker_set, static=static,
-                               forearm_poses=forearm_poses, seeds=seeds, labels=labels, subject_name=subject_name,
-                               functional=functional, reading=reading, beside=beside)
-    except BaseException:
-        for join in beside:
-            if hasattr(join, "cancel"):
-                join.cancel()
-        raise
+    # This process works beside its children and workers most of the time (they run BLAS on one thread
+    # each): its own BLAS on one thread too. With OpenBLAS's threads spinning beside them the phantom's
+    # build took 3.5-5 s longer on two cores (its CPU 9-15 s more); the results differ in the last
+    # digits only (summation order: 7.5e-7 at most in subject.yaml).
+    with one_blas_thread() if default_workers() > 1 else contextlib.nullcontext():
+        try:
+            return _build_from_mri(mri, generic=generic, marker_set=marker_set, static=static,
+                                   forearm_poses=forearm_poses, seeds=seeds, labels=labels,
+                                   subject_name=subject_name, functional=functional, reading=reading,
+                                   beside=beside)
+        except BaseException:
+            for join in beside:
+                if hasattr(join, "cancel"):
+                    join.cancel()
+            raise
 
 
 def _start_beside(fn):

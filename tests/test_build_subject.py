@@ -701,3 +701,22 @@ def test_a_marker_placed_far_off_does_not_tilt_the_static_when_reweighted():
     assert robust < 0.5 * plain, (plain, robust)
     with pytest.raises(ValueError, match="robust_rounds"):
         pose_to_static(sk, bones, local, static, robust_rounds=-1)
+
+
+def test_the_build_runs_its_own_blas_on_one_thread_beside_its_workers(monkeypatch):
+    """With worker processes the build's own process runs BLAS on one thread (its workers do), and the
+    limit ends with the build."""
+    import bonecap.build_mri as bm
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return max((d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"), default=1)
+
+    monkeypatch.setattr(bm, "_build_from_mri", lambda *a, **k: blas_threads())
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        monkeypatch.setenv("BONECAP_WORKERS", "2")
+        assert bm.build_from_mri([]) == 1
+        assert blas_threads() == before
+        monkeypatch.setenv("BONECAP_WORKERS", "1")
+        assert bm.build_from_mri([]) == before
