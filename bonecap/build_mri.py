@@ -36,6 +36,7 @@ Everything is in LPS millimetres; the subject's world frame is ``lps``.
 from __future__ import annotations
 
 import os
+import pickle
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -590,7 +591,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
         beside.append(reading)
     # This process works beside its children and workers most of the time (they run BLAS on one thread
     # each): its own BLAS on one thread too. With OpenBLAS's threads spinning beside them the phantom's
-    # build took 3.5-5 s longer on two cores (its CPU 9-15 s more); the results differ in the last
+    # build took 1.7-12.8 s longer on two cores (its CPU 6-22 s more); the results differ in the last
     # digits only (summation order: 7.5e-7 at most in subject.yaml).
     with one_blas_thread() if default_workers() > 1 else contextlib.nullcontext():
         try:
@@ -1734,6 +1735,10 @@ def start_reading_stacks(dirs: list[str | os.PathLike]):
             try:
                 out.append(_read_stack(d))
             except Exception as exc:  # noqa: BLE001 - raised where the stack is used
+                try:       # it travels back through a pipe: one that does not pickle says what it was
+                    pickle.loads(pickle.dumps(exc))
+                except Exception:  # noqa: BLE001
+                    exc = RuntimeError(f"{d}: {type(exc).__name__}: {exc}")
                 out.append(exc)
         return out
 

@@ -196,9 +196,12 @@ def test_newton_steps_reach_the_minimum_the_sweeps_creep_to():
         lsq._fit_qcp = fit
     assert np.abs(stepped.transforms - swept).max() < 1e-3
     assert n_stepped < n_swept / 5
-    # without tol_mm the option does nothing (six sweeps)
+    # without tol_mm the option does nothing (six sweeps), nor on more frames than a static's
     assert np.array_equal(solve_lsq(skel, MARKER_BONES, local, markers, newton=True).transforms,
                           solve_lsq(skel, MARKER_BONES, local, markers).transforms)
+    many = np.concatenate([markers] * 17)                   # 68 frames
+    assert np.array_equal(solve_lsq(skel, MARKER_BONES, local, many, n_sweeps=200, tol_mm=1e-2, newton=True).transforms,
+                          solve_lsq(skel, MARKER_BONES, local, many, n_sweeps=200, tol_mm=1e-2).transforms)
 
     # no small turn of a bone about its own origin lowers the objective of the solved poses
     def objective(T):

@@ -112,6 +112,8 @@ _BLOCK_FRAMES = 4096
 #: With ``solve_lsq(newton=True)``: the sweeps stop once no segment moves by more than this (mm), and
 #: Gauss-Newton steps take it from there.
 NEWTON_FROM_MM = 0.5
+#: ... and only for at most this many frames (more: the sweeps go on to ``tol_mm``).
+_NEWTON_MAX_FRAMES = 64
 #: Distance (mm) of a hinge's two axis points from its centre: about the elbow's width, so that
 #: the axis weighs like the markers 100-250 mm down the forearm.
 HINGE_LEVER_MM = 40.0
@@ -499,7 +501,7 @@ def _newton(T: np.ndarray, var: Sequence[int], segs: Sequence[Segment], seg_loca
     Stops when no segment moves by more than ``tol_mm`` (its origin, or a point 100 mm from it)
     in a step. Frames are independent; a frame whose step does not lower its objective raises
     its damping and tries again. Returns False when the damping ran away in some frame (the
-    poses stay where they were).
+    poses keep the steps taken, each of which lowered its frame's objective).
     """
     S_all, F = T.shape[0], T.shape[1]
     var = list(var)
@@ -758,7 +760,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         steps on all segments at once to ``tol_mm`` (:func:`_newton`): the same
         minimum, reached in a few steps where the sweeps take hundreds. Dense
         per frame (6 unknowns per segment): for the few frames of a static
-        trial. Not with a forearm model (its radius is placed, not fitted).
+        trial (at most 64; more are swept to ``tol_mm``). Not with a forearm
+        model (its radius is placed, not fitted).
     max_gap_frames : int, default 10
         Longest run of frames over which a segment that cannot be solved is
         interpolated (relative to its parent); longer runs are NaN and invalid.
@@ -826,7 +829,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
 
         probe = forearm_poses_from_markers(skeleton, forearm, labels, marker_bones, local, meas[:1])
         model_bones = sorted(b for b in probe if b.startswith("radius"))
-    newton = bool(newton) and tol_mm is not None and not model_bones
+    # dense normal equations per frame (6 rows a segment): a static trial's few frames, not a trial's
+    newton = bool(newton) and tol_mm is not None and not model_bones and F <= _NEWTON_MAX_FRAMES
     sweep_tol = max(tol_mm, NEWTON_FROM_MM) if newton else tol_mm
     plan = plan_segments(skeleton, marker_bones, segments=segments, joints=joints,
                          own_pose=model_bones + [b.replace("radius", "ulna") for b in model_bones])
