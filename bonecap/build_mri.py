@@ -47,7 +47,7 @@ from bonecap.errors import DataError, InputError
 from bonecap.io import load_yaml
 from bonecap.model import Bone, Mesh, Skeleton, Volume
 from bonecap.motion.paper import minimal_rotation
-from bonecap.parallel import Pending, default_workers, fork_child, fork_map, fork_start
+from bonecap.parallel import Pending, default_workers, fork_map, fork_or_here, fork_start
 from bonecap.skeleton.kinematics import subtree as _subtree
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
@@ -606,19 +606,6 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
             raise
 
 
-def _start_beside(fn):
-    """``fn()`` in a forked child that works beside this process; returns its ``join()``.
-
-    Without worker processes (``BONECAP_WORKERS=1``, no ``fork``) ``fn`` runs at ``join()``.
-    """
-    if default_workers() > 1:
-        try:
-            return fork_child(fn)
-        except RuntimeError:  # no fork here
-            pass
-    return fn
-
-
 def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, labels, subject_name, functional,
                     reading, beside):
     """:func:`build_from_mri`'s stages; ``reading``: :func:`start_reading_stacks` of ``forearm_poses``;
@@ -676,7 +663,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     lap("stations")
     bar.update()
     # the capsules of the stations (the markers' stage names them) need only the registered images
-    capsule_search = _start_beside(lambda: _station_capsules(vols))
+    capsule_search = fork_or_here(lambda: _station_capsules(vols), beside=True)
     beside.append(capsule_search)
 
     # 2. skin
@@ -1725,7 +1712,8 @@ def start_reading_stacks(dirs: list[str | os.PathLike]):
     mesh, the seeds, the bone meshes). ``join()`` gives one entry per stack: its
     ``(volume, body mask, capsule centres)``, or the exception reading it raised, which
     :func:`_stack_read` raises where the stack is used -- as reading it there would have. Without
-    worker processes (``BONECAP_WORKERS=1``, no ``fork``) the stacks are read at ``join()``.
+    worker processes (``BONECAP_WORKERS=1``, no ``fork``, one CPU) they are read here at once
+    (:func:`bonecap.parallel.fork_or_here`).
     """
     dirs = list(dirs)
 
@@ -1742,7 +1730,7 @@ def start_reading_stacks(dirs: list[str | os.PathLike]):
                 out.append(exc)
         return out
 
-    return _start_beside(read_all)
+    return fork_or_here(read_all, beside=True)
 
 
 def _stack_read(entry):
