@@ -98,6 +98,35 @@ def test_cortical_contour_lies_on_the_periosteum_for_thin_and_thick_cortices():
     assert np.abs(errors).max() < 0.3, errors.round(2)
 
 
+def test_cortical_contour_keeps_a_long_marrow_whole_and_reads_only_near_it():
+    """A shaft cut along its length (a sagittal slice): its marrow is 125 mm long, longer than the rays
+    reach each way from its centre (45 mm). The marrow is kept whole and the contour lies on the
+    periosteum (19 mm across) near its centre; the same bone in a larger image, with a bright structure
+    30 mm beyond its cortex, gives the same pixels (the crop holds what the rays read)."""
+    rng = np.random.default_rng(5)
+    ii, jj = np.mgrid[:200, :80]
+    img = np.full((200, 80), 300.0)                                        # muscle
+    img[(abs(ii - 100) <= 65) & (abs(jj - 40) <= 9)] = 80.0                # cortex, 19 px across
+    marrow = (abs(ii - 100) <= 62) & (abs(jj - 40) <= 6)
+    img[marrow] = 900.0
+    img += rng.normal(0.0, 8.0, img.shape)
+    bone = cortical.cortical_contour(img, marrow, 1.0, 300.0)
+    assert bone[marrow].all()
+    widths = bone.sum(axis=1)
+    # the rays start at the marrow's deepest pixel (the first of the shaft's axis, ~row 44): along 25 mm
+    # and more around it they meet the cortex at their side; farther on the marrow alone is left
+    assert (np.abs(widths - 19) <= 1).sum() >= 25 and widths.max() <= 20, widths
+    assert not bone[:30].any() and not bone[170:].any()
+    big = np.full((320, 220), 300.0)
+    big[60:260, 70:150] = img
+    big[140:180, 190:200] = 900.0                                          # 30 mm past the cortex
+    big_marrow = np.zeros(big.shape, bool)
+    big_marrow[60:260, 70:150] = marrow
+    big_bone = cortical.cortical_contour(big, big_marrow, 1.0, 300.0)
+    np.testing.assert_array_equal(big_bone[60:260, 70:150], bone)
+    assert big_bone.sum() == bone.sum()
+
+
 def test_segment_body_keeps_separate_limbs():
     """Two legs and a noise speck: two components kept, holes filled per slice."""
     rng = np.random.default_rng(2)

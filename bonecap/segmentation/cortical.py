@@ -551,25 +551,42 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
     out = np.zeros(image.shape, bool)
     if not marrow.any() or not np.isfinite(muscle):
         return out
-    # Crop around the marrow plus the longest ray.
     ii, jj = np.nonzero(marrow)
+    mlo = np.array([ii.min(), jj.min()])
+    mhi = np.array([ii.max(), jj.max()])
+    # The marrow's centre: its deepest pixel, by a distance transform on the marrow's own box and a
+    # ring of background (the same distances as over a larger crop: a pixel beyond the ring is no
+    # nearer than the ring straight across; the first maximum in the same order).
+    depth = ndimage.distance_transform_edt(np.pad(marrow[mlo[0]:mhi[0] + 1, mlo[1]:mhi[1] + 1], 1))[1:-1, 1:-1]
+    centre_ij = np.array(np.unravel_index(int(np.argmax(depth)), depth.shape)) + mlo
+    # How far the rays are read. A ray leaves the marrow (bilinear value < 0.5) once no marrow pixel
+    # is within a pixel's cell of it: by the farthest corner of the marrow's box plus sqrt(2) (the
+    # marrow trimmed and filled below stays in that box). Nothing past ``max_cortex_mm`` beyond
+    # that exit is looked at, so reading on to ``max_radius_mm`` (45 mm, for a marrow that does not
+    # end) cost 3-4x the samples and a crop ~6x the area for the same contour.
     reach = max_radius_mm / pixel_mm + 2
-    lo = np.maximum([int(ii.min() - reach), int(jj.min() - reach)], 0)
-    hi = np.minimum([int(ii.max() + reach) + 1, int(jj.max() + reach) + 1], image.shape)
-    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+    corners = np.array([[a, b] for a in (mlo[0], mhi[0]) for b in (mlo[1], mhi[1])], float)
+    far = float(np.max(np.linalg.norm(corners - centre_ij, axis=1)))
+    need = min(reach, far + np.sqrt(2.0) + 2 * 0.25 + max_cortex_mm / pixel_mm)
+    # Crop around the centre plus the longest ray read, and 4 pixels more: the profile's Gaussian
+    # (``truncate`` 4 x 0.5 px: 2 px) and the bilinear read (1 px) then see the pixels they would
+    # see in the whole image, so the crop changes no sample.
+    pad = int(np.ceil(need)) + 4 + int(4.0 * profile_sigma_px + 0.5)
+    # It holds the marrow and 3 pixels around it too (its level is read through the same Gaussian;
+    # a marrow reaching past the longest ray is trimmed and filled whole), and is never larger than
+    # the marrow's box plus the longest ray (where a ray near the image's edge still reads the
+    # Gaussian's edge).
+    lo = np.maximum(np.minimum(centre_ij - pad, mlo - 3), np.maximum([int(mlo[0] - reach), int(mlo[1] - reach)], 0))
+    hi = np.minimum(np.maximum(centre_ij + pad, mhi + 3) + 1,
+                    np.minimum([int(mhi[0] + reach) + 1, int(mhi[1] + reach) + 1], image.shape))
+    box = (slice(int(lo[0]), int(hi[0])), slice(int(lo[1]), int(hi[1])))
     # The profiles get only a light Gaussian: a 3x3 median would erase a cortex one pixel thin
     # (3 of its 9 pixels are dark), which is exactly the cortex whose dip places the edge.
     img = image[box].astype(np.float32)
     if profile_sigma_px > 0:
         img = ndimage.gaussian_filter(img, profile_sigma_px, mode="nearest")
     mar = marrow[box]
-    # the marrow's deepest pixel, its distance transform on the marrow's own box and a ring of
-    # background: the same distances as over the whole crop (a pixel beyond the ring is no nearer
-    # than the ring straight across) on a box ~50x smaller; the first maximum in the same order
-    mi, mj = ii - lo[0], jj - lo[1]
-    i0, j0 = int(mi.min()), int(mj.min())
-    depth = ndimage.distance_transform_edt(np.pad(mar[i0:int(mi.max()) + 1, j0:int(mj.max()) + 1], 1))[1:-1, 1:-1]
-    centre = np.array(np.unravel_index(int(np.argmax(depth)), depth.shape), float) + (i0, j0)
+    centre = (centre_ij - lo).astype(float)
     marrow_level = float(np.median(img[mar]))
     m = float(muscle)
     # The marrow was found at a low threshold (a little above muscle); for the union below
@@ -580,6 +597,7 @@ def cortical_contour(image: np.ndarray, marrow: np.ndarray, pixel_mm: float, mus
 
     step = 0.25
     r = np.arange(0.0, reach, step)                                      # (S,) px
+    r = r[r <= need + step]
     theta = np.linspace(0.0, 2 * np.pi, int(n_rays), endpoint=False)     # (R,)
     pi = centre[0] + np.cos(theta)[:, None] * r[None, :]
     pj = centre[1] + np.sin(theta)[:, None] * r[None, :]
