@@ -672,9 +672,13 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     # masks (the half-way boundary) make the skin mesh the markers are put on
     both = fork_map(lambda v: segment_body(v, skin=True), vols)
     bodies = [b for b, _ in both]
-    skin = mesh_from_slices([(s, v.affine) for (_, s), v in zip(both, vols)], voxel_mm=4.0,
-                            target_faces=40000) if vols else None
+    skin_masks = [(s, v.affine) for (_, s), v in zip(both, vols)]
     del both
+    # The skin's mesh (~5 s) is needed from the warp on (the skull is fitted to it): it is made in a
+    # child beside the seeds (serial) and the bone contours' last station, where a core was idle.
+    skin_meshing = fork_or_here(lambda: mesh_from_slices(skin_masks, voxel_mm=4.0, target_faces=40000),
+                                beside=True) if vols else (lambda: None)
+    beside.append(skin_meshing)
     lap("skin")
     bar.update()
 
@@ -743,6 +747,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     targets = _plausible_targets(posed, extracted, strict=labels is None and seeds is None)
     # the template is placed bone by bone already (limbs re-posed toward the MRI)
     placed_ok = labels is None and seeds is None
+    skin = skin_meshing()
+    del skin_masks
     # the skull from the head's skin (its thin cortex escapes the slice rules); fitted before the warp so
     # that the spine carried up from the pelvis meets it (see warp_skeleton's ``fixed``)
     skull_A, skull_report = fit_skull_to_skin(posed, skin) if "skull" not in targets else (np.eye(4), None)
@@ -779,26 +785,28 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     lap("warp")
     bar.update()
 
-    # the hands, which no bone rule resolves at whole-body resolution, turned at the wrist into the skin
-    skin_posed = None
-    if skin is not None:
-        personal, skin_posed = pose_inside_skin(personal, skin)
-
-    # 7. markers
-    bar.set_postfix_str("markers")
-    subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
-                      provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
-                                  "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
-                                  "static": str(static) if static else None,
-                                  "seeds": str(seeds) if seeds else "template (affine to the body)"})
-    # the forearm stacks' registrations need the personal bones, not the markers: started first, they run
-    # in worker processes while the markers are placed here (the workers see the skeleton as it is now)
+    # The forearm stacks' registrations need the personal forearm bones, nothing after the warp (the
+    # hands turned into the skin below, the markers): started now, they run in worker processes while
+    # the hands are posed and the markers placed here. The workers see the skeleton as it is now; the
+    # turn below replaces only the hands' bones (pose_inside_skin copies the ones it turns).
     registering = None
     if forearm_poses:
         read = reading()
         side = _stack_side(forearm_poses[0], personal, read[0])
         registering = start_forearm_registration(list(forearm_poses), personal, side, read=read)
     try:
+        # the hands, which no bone rule resolves at whole-body resolution, turned at the wrist into the skin
+        skin_posed = None
+        if skin is not None:
+            personal, skin_posed = pose_inside_skin(personal, skin)
+
+        # 7. markers
+        bar.set_postfix_str("markers")
+        subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
+                          provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
+                                      "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
+                                      "static": str(static) if static else None,
+                                      "seeds": str(seeds) if seeds else "template (affine to the body)"})
         marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials,
                                         capsule_search=capsule_search)
     except BaseException:

@@ -174,6 +174,31 @@ def test_meshes_from_labels_two_bones_two_stations():
     assert list(few) == ["rod"] and "slice" in errors["ball"]
 
 
+def test_meshes_from_labels_in_workers_as_in_one_process(monkeypatch):
+    """The bones are meshed in worker processes, the largest first: the same meshes, in the order of
+    ``ids``, as one after the other here; a bone that cannot be meshed is said so, or raises, naming it."""
+    lab = np.zeros((60, 60, 20), np.int16)
+    A = np.diag([1.5, 1.5, 4.0, 1.0])
+    ii, jj = np.mgrid[:60, :60]
+    for n, (ci, cj, r) in enumerate([(15, 15, 6), (45, 45, 10), (15, 45, 4), (45, 15, 8)], start=1):
+        lab[((ii - ci) ** 2 + (jj - cj) ** 2 <= r * r)[:, :, None] & (np.arange(20) >= 2 + n)[None, None, :]] = n
+    ids = {"small": 3, "big": 2, "first": 1, "mid": 4}
+    monkeypatch.setenv("BONECAP_WORKERS", "2")
+    forked = meshes_from_labels([(lab, A)], ids, target_faces=500)
+    monkeypatch.setenv("BONECAP_WORKERS", "1")
+    here = meshes_from_labels([(lab, A)], ids, target_faces=500)
+    assert list(forked) == list(here) == list(ids)
+    for name in ids:
+        np.testing.assert_array_equal(forked[name].vertices, here[name].vertices)
+        np.testing.assert_array_equal(forked[name].faces, here[name].faces)
+    monkeypatch.setenv("BONECAP_WORKERS", "2")
+    errors = {}
+    assert meshes_from_labels([(lab, A)], ids, errors=errors, clip_mm=-1.0) == {}
+    assert set(errors) == set(ids) and all("clip_mm" in e for e in errors.values())
+    with pytest.raises(ValueError, match="bone 'small': clip_mm"):
+        meshes_from_labels([(lab, A)], ids, clip_mm=-1.0)
+
+
 def test_surface_distance_analytic():
     import trimesh
 
