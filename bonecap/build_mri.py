@@ -1909,7 +1909,8 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float, read=No
                           if j in personal.bones[n].joint_centres])
              for n in (hum_n, ulna_n, radius_n) if n in personal.bones}
     seeds = {n: p for n, p in seeds.items() if len(p) == 2}
-    raw, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False)
+    regions: dict = {}                  # the slices' marrow candidates, found once for both rules below
+    raw, ids = segment_bones(v, seeds, body_mask=body, progress=False, continuity=False, marrow_regions=regions)
     lab = keep_continuous(raw, ids, v, seeds)
     Ts = {}
     turn = None
@@ -1934,7 +1935,8 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float, read=No
             if ax is not None:
                 ring = _swept_by(Rb.mesh.transformed(ulna_move @ Rb.bone_to_world).vertices, ax, v, body)
                 ulna_at = _inside_mesh(v, Ts[ulna_n], U.mesh, ring, margin_mm=1.5)
-                mask = marrow_sections(v, ring, body_mask=body, exclude=ulna_at, per_slice=1) & ring
+                mask = marrow_sections(v, ring, body_mask=body, exclude=ulna_at, per_slice=1,
+                                       regions=regions) & ring
             else:
                 mask = (raw == ids[ulna_n]) | (raw == ids[radius_n])
             mask &= ~_inside_mesh(v, Ts[ulna_n], U.mesh, mask, margin_mm=1.5)

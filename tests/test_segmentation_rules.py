@@ -463,6 +463,34 @@ def test_marrow_sections_finds_a_bone_without_a_seed():
         marrow_sections(vol, body[:, :, :2])
 
 
+def test_marrow_sections_reuses_the_regions_segment_bones_found(monkeypatch):
+    """On a stack segment_bones has been through (a forearm stack: the ulna by its seed, then the radius
+    without one), its slices' marrow regions are reused, not found again, with the same sections; found
+    with other options they are not used."""
+    from bonecap.segmentation import bones as bones_mod
+    from bonecap.segmentation.bones import marrow_sections, segment_bones
+
+    K = 6
+    vol, body = _tube_stack(120, K, 4.0, [(45, 60, 9, 6, range(K)), (78, 60, 7, 4, range(K))], seed=8)
+    seeds = {"ulna_r": np.array([[45.0, 60.0, 0.0], [45.0, 60.0, (K - 1) * 4.0]])}
+    regions: dict = {}
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False, continuity=False,
+                                marrow_regions=regions)
+    assert sorted(regions) == list(range(K))
+    exclude = labels == ids["ulna_r"]
+    found = []
+    detach = bones_mod.cortical.detach_from_skin
+    monkeypatch.setattr(bones_mod.cortical, "detach_from_skin", lambda *a, **k: found.append(1) or detach(*a, **k))
+    again = marrow_sections(vol, body, body_mask=body, exclude=exclude, per_slice=1)
+    assert len(found) == K
+    reused = marrow_sections(vol, body, body_mask=body, exclude=exclude, per_slice=1, regions=regions)
+    assert len(found) == K                                    # nothing found again
+    assert np.array_equal(reused, again) and reused[78, 60].all() and not reused[45, 60].any()
+    other = marrow_sections(vol, body, body_mask=body, exclude=exclude, per_slice=1, regions=regions,
+                            options={"marrow_over_muscle": 1.3})
+    assert len(found) == 2 * K and other[78, 60].all()
+
+
 def test_long_bone_seeds_stop_short_of_a_joint_with_an_unsegmented_bone():
     """The tibia's seed line ends the 20 mm search margin + the talus's reach into the ankle's mortise
     (how far its template mesh extends past the ankle's centre back along the tibia) short of the

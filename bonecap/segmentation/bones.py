@@ -168,7 +168,8 @@ def _resolve_overlaps(masks: dict[str, np.ndarray], seeds: dict[str, np.ndarray]
 
 def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray], extension: dict[str, np.ndarray],
                     opts: dict, others: dict[str, np.ndarray] | None = None,
-                    holds: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                    holds: dict[str, np.ndarray] | None = None, regions_out: list | None = None
+                    ) -> dict[str, np.ndarray]:
     """All long bones of one slice: marrow regions assigned to seeds jointly, then each contour.
 
     The marrow candidates (:func:`~bonecap.segmentation.cortical.find_marrow`'s criteria, with one
@@ -184,6 +185,9 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
     density bone's: past a long bone's proximal end the joint centre lies in its head (the
     hip's seed passes through the hip's centre too, and took the femoral head), past its
     distal end in the next bone (the ankle's in the talus).
+
+    ``regions_out``: a list that gets the slice's marrow regions as :func:`_marrow_regions`
+    finds them (``(options key, labels, count, muscle level)``), before any is split between seeds.
     """
     m_slice = cortical.muscle_level(med, inner)
     out = {name: np.zeros(img.shape, bool) for name in bones}
@@ -193,6 +197,8 @@ def _cortical_slice(img, med, body, inner, pixel_mm, bones: dict[str, np.ndarray
     # fat reaches the skin and is dropped; marrow joined to it through a gap in the cortex is cut loose
     cand = _marrow_candidates(med, body, pixel_mm, m_slice, o0)
     lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
+    if regions_out is not None:
+        regions_out.append((_marrow_key(o0), lab.copy(), n, m_slice))
     if n == 0:
         return out
     lab, n = _split_shared_regions(lab, n, {b: p[~extension[b]] for b, p in bones.items()})
@@ -378,14 +384,26 @@ def _marrow_candidates(med: np.ndarray, body: np.ndarray, pixel_mm: float, m_sli
                                       enclosed_max_mm2=opts.get("enclosed_max_mm2", cortical.ENCLOSED_MAX_MM2))
 
 
-def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float, opts: Mapping
-                    ) -> tuple[np.ndarray, np.ndarray, float]:
-    """A slice's marrow candidates as :func:`_cortical_slice` finds them: (labels, kept ids, muscle level)."""
-    m_slice = cortical.muscle_level(med, inner)
-    if not np.isfinite(m_slice) or m_slice <= 0:
-        return np.zeros(med.shape, np.int32), np.zeros(0, int), m_slice
-    cand = _marrow_candidates(med, body, pixel_mm, m_slice, opts)
-    lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
+def _marrow_key(opts: Mapping) -> tuple[float, float]:
+    """The options a slice's marrow candidates depend on (:func:`_marrow_candidates`)."""
+    return (float(opts.get("marrow_over_muscle", 1.2)), float(opts.get("enclosed_max_mm2", cortical.ENCLOSED_MAX_MM2)))
+
+
+def _marrow_regions(med: np.ndarray, body: np.ndarray, inner: np.ndarray, pixel_mm: float, opts: Mapping,
+                    found: tuple | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """A slice's marrow candidates as :func:`_cortical_slice` finds them: (labels, kept ids, muscle level).
+
+    ``found``: the slice's regions as :func:`_cortical_slice` found them (its ``regions_out`` entry),
+    used when they were found with the same options.
+    """
+    if found is not None and found[0] == _marrow_key(opts):
+        _, lab, n, m_slice = found
+    else:
+        m_slice = cortical.muscle_level(med, inner)
+        if not np.isfinite(m_slice) or m_slice <= 0:
+            return np.zeros(med.shape, np.int32), np.zeros(0, int), m_slice
+        cand = _marrow_candidates(med, body, pixel_mm, m_slice, opts)
+        lab, n = cortical.detach_from_skin(cand, body, inner, pixel_mm)
     area = np.bincount(lab.ravel(), minlength=n + 1)[1:] * pixel_mm ** 2
     keep = np.flatnonzero(area >= opts.get("min_marrow_mm2", 6.0)) + 1
     return lab, keep, m_slice
@@ -502,7 +520,8 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                   options: Mapping[str, Mapping] | None = None, sigma_px: float = 0.7,
                   joint_zone_mm: float = 60.0, continuity: bool = True,
                   follow_mm: Mapping[str, float] | None = None,
-                  follow_head_mm: Mapping[str, float] | None = None) -> tuple[np.ndarray, dict[str, int]]:
+                  follow_head_mm: Mapping[str, float] | None = None,
+                  marrow_regions: dict | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
     Per slice ``k``: each bone whose seed polyline reaches the slice (with
@@ -569,6 +588,10 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         cross-section (the joint space) within this distance of that point (at most 15 %
         of the shorter bone's length);
         each side goes to the bone whose polyline lies there.
+    marrow_regions : dict, optional
+        Filled with each slice's marrow candidate regions where the cortical
+        rule looked for them (slice index -> entry), for :func:`marrow_sections`
+        (``regions``) to reuse on the same stack instead of finding them again.
 
     Returns
     -------
@@ -651,8 +674,11 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
             ext = {n: np.full(len(s), len(crossing[n][k]) == 0) for n, s in long_here.items()}
             holds = {n: np.full(len(s), len(crossing[n][k]) > 0 or before_start[n][k]) for n, s in long_here.items()}
             others = {n: s for n, s in here.items() if rule_of[n] == "density"}
+            got: list | None = [] if marrow_regions is not None else None
             masks.update(_cortical_slice(img, smooth[:, :, k], body, interior[:, :, k], pixel_mm, long_here, ext,
-                                         opts, others, holds))
+                                         opts, others, holds, regions_out=got))
+            if got:
+                marrow_regions[k] = got[0]
         taken = np.zeros(img.shape, bool)
         for m in masks.values():
             taken |= m
@@ -967,7 +993,8 @@ def _marrow_top(med: np.ndarray, marrow: np.ndarray, factor: float) -> float:
 
 def marrow_sections(volume: Volume, where: np.ndarray, *, body_mask: np.ndarray | None = None,
                     exclude: np.ndarray | None = None, per_slice: int | None = None, min_rim: float = 0.2,
-                    sigma_px: float = 0.7, options: Mapping | None = None) -> np.ndarray:
+                    sigma_px: float = 0.7, options: Mapping | None = None,
+                    regions: Mapping | None = None) -> np.ndarray:
     """Every long-bone section whose marrow meets ``where``, without seeds.
 
     Per slice, the marrow candidates of :func:`segment_bones`'s cortical rule
@@ -1003,6 +1030,10 @@ def marrow_sections(volume: Volume, where: np.ndarray, *, body_mask: np.ndarray 
     options : dict, optional
         Cortical-rule options (``marrow_over_muscle``, ``min_marrow_mm2`` and
         those of :func:`~bonecap.segmentation.cortical.cortical_contour`).
+    regions : dict, optional
+        :func:`segment_bones`'s ``marrow_regions`` of the same volume, body
+        mask and ``sigma_px`` (0.7 there): the slices' marrow candidates it
+        found already (where found with the same options), not found again.
 
     Returns
     -------
@@ -1038,7 +1069,7 @@ def marrow_sections(volume: Volume, where: np.ndarray, *, body_mask: np.ndarray 
         med = ndimage.gaussian_filter(img.astype(np.float32), sigma_px, mode="nearest")
         body = body_mask[:, :, k]
         inner = cortical._interior(body, pixel_mm, 3.0)
-        lab, keep, m = _marrow_regions(med, body, inner, pixel_mm, opts)
+        lab, keep, m = _marrow_regions(med, body, inner, pixel_mm, opts, found=(regions or {}).get(int(k)))
         keep = np.intersect1d(keep, np.unique(lab[where[:, :, k]]))
         if not keep.size:
             continue
