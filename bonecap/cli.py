@@ -44,7 +44,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from bonecap.demo import format_report, run_demo
 
     report = run_demo(args.out_dir, args.generic, n_frames=args.frames, seed=args.seed,
-                      phantom=not args.no_phantom)
+                      phantom=not args.no_phantom, preset=args.preset)
     print(format_report(report))
     return 0
 
@@ -136,13 +136,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="run every stage that exists, end to end, on the embedded default",
         description="Build the template skeleton, write its meshes and pictures, place its markers, "
         "move it by a synthetic motion written as a C3D trial, recover the motion from that trial, "
-        "export it as an animated glTF, and make a reduced phantom subject with its truth.",
+        "export it as an animated glTF, make a phantom subject with its truth, build the personal "
+        "skeleton from its MRI, animate its trials and score both against the truth.",
     )
     p.add_argument("-o", dest="out_dir", required=True, metavar="OUT_DIR", help="output folder")
     _add_generic(p)
     p.add_argument("--frames", type=int, default=200, help="length of the synthetic trial (default 200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the marker noise and the phantom")
-    p.add_argument("--no-phantom", action="store_true", help="skip the reduced phantom subject")
+    p.add_argument("--preset", choices=("default", "tiny"), default="default",
+                   help="the phantom subject: the whole body (default: 8 MRI stations, a few minutes) or "
+                   "the reduced one the tests use (tiny: 2 coarse stations, too few for the personal "
+                   "skeleton's warp)")
+    p.add_argument("--no-phantom", action="store_true", help="skip the phantom subject")
     p.set_defaults(handler=_cmd_demo)
 
     p = sub.add_parser(

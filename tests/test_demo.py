@@ -44,7 +44,7 @@ def test_demo_on_an_opensim_template(shared_data, tmp_path):
 
 def test_demo_cli_on_the_default_template(tmp_path, cli):
     out = tmp_path / "demo"
-    res = cli("demo", "-o", out, "--frames", "40")
+    res = cli("demo", "-o", out, "--frames", "40", "--preset", "tiny")
     assert res.returncode == 0, res.stderr
     assert "animated bones" in res.stdout
     report = json.loads((out / "report.json").read_text())
@@ -52,7 +52,7 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
     _check_demo(out, report)
     assert np.isfinite(report["skeleton"]["triangles"])
     # stage 5: the reduced phantom and its truth
-    assert report["phantom"]["stations"] >= 2 and len(report["phantom"]["forearm_stacks"]) == 3
+    assert report["phantom"]["preset"] == "tiny" and report["phantom"]["stations"] >= 2 and len(report["phantom"]["forearm_stacks"]) == 3
     assert (out / "phantom/truth/README.md").is_file()
     assert sorted(p.name for p in (out / "phantom/trials").glob("*.c3d")) == sorted(
         f"{t}.c3d" for t in report["phantom"]["trials"])
