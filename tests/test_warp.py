@@ -446,6 +446,23 @@ def test_a_chain_between_the_pelvis_and_a_fixed_skull_meets_both():
                                  refine_chain=lambda b, p: (None, {"used": False}))
     for n in names:
         np.testing.assert_array_equal(sk4.bones[n].bone_to_world, sk.bones[n].bone_to_world)
+    # the chain's joints far from where the template was placed (a phantom's lumbar spine 26 mm shorter
+    # than the spread, its discs all matched): trusted as own targets' joints are, so the middle vertebrae,
+    # moved beyond the bound from their placed pose, follow them (up to twice the bound) instead of
+    # staying placed -- here a 20 mm bound and a smooth 30 mm sag
+    sag = -30.0 * np.sin(np.pi * np.arange(len(seen["points"])) / (len(seen["points"]) - 1))
+    sk5, report5 = warp_skeleton(template, targets, init=np.eye(4), start_from="placed", max_shift_mm=20.0,
+                                 fixed={"skull": skull_map},
+                                 refine_chain=lambda b, p: (np.asarray(p) + sag[:, None] * [0, 1, 0], {"used": True}))
+    for i in (3, 4):                                    # v2 and v3, between the sag's deepest joints
+        n = names[i - 1]
+        moved = np.linalg.norm(sk5.bones[n].bone_to_world[:3, 3] - template.bones[n].bone_to_world[:3, 3])
+        assert moved > 25.0 and report5["bones"][n]["source"] == "neighbours", (n, moved, report5["bones"][n])
+        np.testing.assert_allclose(sk5.bones[n].landmark_in_world(f"v{i - 2}_top"),
+                                   seen["points"][i - 1] + [0, sag[i - 1], 0], atol=1e-6)
+        np.testing.assert_allclose(sk5.bones[n].landmark_in_world(f"v{i - 1}_top"),
+                                   seen["points"][i] + [0, sag[i], 0], atol=1e-6)
+
 
 def _apply_map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return T[:3, :3] @ p + T[:3, 3]
