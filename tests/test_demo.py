@@ -66,5 +66,7 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
         assert (out / "animate" / f"{t}.glb").is_file() and r["valid_share"] > 0.5
     ev = report["evaluation"]
     assert 0 < ev["subject"]["oracle_dice"] <= 1 and ev["subject"]["personal_surface_mean_mm"] > 0
+    # the long bones' Dice, which the slice rules are for (the tiny preset's coarse slices: ~0.24)
+    assert 0 < ev["subject"]["long_bone_dice_median"] < 1
     assert ev["motion"]["bones"] > 20 and np.isfinite(ev["motion"]["deg_median_over_bones"])
     assert "evaluate vs truth" in res.stdout
