@@ -824,10 +824,12 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         bone carried by its neighbours that would move or turn beyond the
         own targets' bounds (``max_shift_mm``, ``max_turn_deg``) is kept where
         it was placed (source "placed template"); when every joint it is
-        carried onto was placed by an own target, or by a bone carried onto
-        such joints alone (down a chain), the shift bound is twice
-        ``max_shift_mm``: those joints passed the bounds themselves, and a
-        long bone's end moves farther than its centre.
+        carried onto was placed by an own target, by a bone carried onto
+        such joints alone (down a chain), or by the chain between a fixed
+        bone and its anchor (spread, or put where ``refine_chain`` says), the
+        shift bound is twice ``max_shift_mm``: those joints passed the bounds
+        themselves or were measured, and a long bone's end moves farther than
+        its centre.
     unseen : dict of str -> sequence of (normal (3,), offset), optional
         Per bone, half-spaces of the target world where its target was not
         looked for (``normal . p > offset``): a slice-wise search that ended
