@@ -576,11 +576,12 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
     qc : callable
         ``qc(folder)`` writes the QC pictures into ``folder/qc``.
     """
-    # Work that needs only the images runs in children beside the stages that leave a core idle
-    # (loading the stations, the seeds, the bone meshes): what of the forearm stacks needs nothing
-    # from the stations (reading them, their body masks, their capsules: ~8 s of CPU) starts now,
-    # the capsule search of the stations once they are registered (~4 s). ``beside`` holds their
-    # joins, stopped if the build fails.
+    # Work runs in children beside the stages that leave a core idle (loading the stations, the seeds,
+    # the bone contours' last station, the hands' pose and the markers): what of the forearm stacks
+    # needs nothing from the stations (reading them, their body masks, their capsules: ~8 s of CPU)
+    # starts now, the stations' capsule search once they are registered (~4 s), the skin's mesh once
+    # the body masks are made (~5 s), the stacks' registration after the warp. ``beside`` holds their
+    # joins (and the registration's Pending), stopped if the build fails.
     import contextlib
 
     from bonecap.parallel import one_blas_thread
@@ -609,7 +610,7 @@ def build_from_mri(mri: list[str | os.PathLike], *, generic: str | os.PathLike =
 def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, labels, subject_name, functional,
                     reading, beside):
     """:func:`build_from_mri`'s stages; ``reading``: :func:`start_reading_stacks` of ``forearm_poses``;
-    ``beside``: the children started, to which the stations' capsule search is added."""
+    ``beside``: the children started, to which the later ones are added (stopped if the build fails)."""
     from bonecap.io.c3d import read_c3d
     from bonecap.markers import check_marker_set, load_marker_set
     from bonecap.meshing import mesh_from_slices, meshes_from_labels
@@ -794,25 +795,22 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         read = reading()
         side = _stack_side(forearm_poses[0], personal, read[0])
         registering = start_forearm_registration(list(forearm_poses), personal, side, read=read)
-    try:
-        # the hands, which no bone rule resolves at whole-body resolution, turned at the wrist into the skin
-        skin_posed = None
-        if skin is not None:
-            personal, skin_posed = pose_inside_skin(personal, skin)
+        beside.append(registering)
 
-        # 7. markers
-        bar.set_postfix_str("markers")
-        subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
-                          provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
-                                      "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
-                                      "static": str(static) if static else None,
-                                      "seeds": str(seeds) if seeds else "template (affine to the body)"})
-        marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials,
-                                        capsule_search=capsule_search)
-    except BaseException:
-        if registering is not None:
-            registering.close()
-        raise
+    # the hands, which no bone rule resolves at whole-body resolution, turned at the wrist into the skin
+    skin_posed = None
+    if skin is not None:
+        personal, skin_posed = pose_inside_skin(personal, skin)
+
+    # 7. markers
+    bar.set_postfix_str("markers")
+    subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
+                      provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
+                                  "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
+                                  "static": str(static) if static else None,
+                                  "seeds": str(seeds) if seeds else "template (affine to the body)"})
+    marker_report = _place_and_bind(subject, mset, vols, bodies, static_trial, static, functional_trials,
+                                    capsule_search=capsule_search)
     # the tibiae's frames (and the feet's carried with them) turned to their malleoli's twist, after the
     # markers are placed and bound: a frame only says how a bone's pose is reported, so the bones stay
     # where the warp and the static put them (turned before the placement, the shank markers' "lateral"

@@ -101,6 +101,10 @@ class Pending:
         self._pool = self._async = None
         _JOBS.pop(self._job, None)
 
+    #: The same as :meth:`close`, under the name :func:`fork_child`'s ``join.cancel`` has: a caller
+    #: that stops its background work when it fails stops either kind alike.
+    cancel = close
+
     def result(self) -> list:
         """The results in the order of the items; the first item whose function raised raises here."""
         if self._out is None:

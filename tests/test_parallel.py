@@ -92,6 +92,11 @@ def test_fork_start_serial_runs_at_result_and_close_drops_the_work(monkeypatch):
     stopped.close()                                   # an error elsewhere: the workers are stopped
     with pytest.raises(DataError, match="never seen"):
         stopped.result()                              # asked anyway: the work is done here, errors and all
+    # cancel(), as fork_child's join has it (build-subject stops either kind alike when it fails)
+    cancelled = fork_start(lambda i: i, range(2), workers=2)
+    assert cancelled._pool is not None
+    cancelled.cancel()
+    assert cancelled._pool is None and cancelled.result() == [0, 1]
 
 
 def test_workers_run_blas_single_threaded():
