@@ -229,10 +229,10 @@ def _subject_and_motion(out: Path, report: dict[str, Any], bar) -> None:
     deg = [v["deg_median"] for v in ev_m["overall"].values()]
     # the slice rules' long bones (the cortical rule): the summary's Dice is the median over every bone,
     # and most of the 90 (ribs, vertebrae, hands, feet) are not segmented at whole-body resolution
-    from bonecap.segmentation.bones import LONG_BONES
+    from bonecap.segmentation.bones import default_rule
 
     long_dice = [r["dice"] for b, r in ev_s["bones"].items()
-                 if b.rsplit("_", 1)[0] in LONG_BONES and np.isfinite(r.get("dice", np.nan))]
+                 if default_rule(b) == "cortical" and np.isfinite(r.get("dice", np.nan))]
     report["evaluation"] = {"subject": {**ev_s["summary"],
                                         "long_bone_dice_median": float(np.median(long_dice)) if long_dice else None},
                             "motion": {"bones": len(deg), "deg_median_over_bones": float(np.median(deg)),
