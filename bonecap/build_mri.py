@@ -6,7 +6,9 @@
 3. **Seeds**: the template turned into LPS (supine: model X anterior → −y,
    Y up → +z, Z right → −x) and scaled and placed on the body by its head-to-
    sole extent and its centre at hip level — an affine guess, good to ~2 cm,
-   which the slice rules refine. ``--seeds`` overrides per bone.
+   which the slice rules refine; the limbs turned toward the limbs' sections,
+   the arms moved onto the elbows the marrow shows (:func:`elbow_offsets`).
+   ``--seeds`` overrides per bone.
 4. **Bone contours** (:mod:`bonecap.segmentation.bones`): the cortical-edge
    rule for long bones, the density-threshold rule for the rest, per slice in
    native pixels.
@@ -52,7 +54,7 @@ from bonecap.skeleton.kinematics import subtree as _subtree
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
            "load_seeds", "build_from_mri", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
-           "reframe_subject"]
+           "reframe_subject", "elbow_offsets"]
 
 #: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
 MODEL_TO_LPS = np.array([[0.0, 0.0, -1.0, 0.0],
@@ -182,13 +184,17 @@ class _LimbSections:
         self.z, self.parts = [], []
         for v, m in zip(vols, bodies):
             area_px = float(np.prod(v.spacing[:2]))
+            ii, jj = (a.ravel() for a in np.indices(m.shape[:2], dtype=float))
             for k in range(m.shape[2]):
                 lab, n = ndimage.label(m[:, :, k])
                 if n == 0:
                     continue
-                idx = np.arange(1, n + 1)
-                areas = ndimage.sum_labels(np.ones_like(lab), lab, idx) * area_px
-                cents = np.array(ndimage.center_of_mass(m[:, :, k], lab, idx))
+                # areas and centroids by counting (ndimage's per-label statistics took ~2 s a body)
+                flat = lab.ravel()
+                count = np.bincount(flat, minlength=n + 1)[1:]
+                areas = count * area_px
+                cents = np.column_stack([np.bincount(flat, ii, n + 1)[1:], np.bincount(flat, jj, n + 1)[1:]])
+                cents /= np.maximum(count, 1)[:, None]
                 keep = areas >= min_area_mm2
                 if not keep.any():
                     continue
@@ -225,7 +231,12 @@ class _LimbSections:
         return np.mean(pts, axis=0) if pts else None
 
 
-def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float]:
+#: The limbs :func:`repose_limbs` turns: (long bone, its distal joint, the limb's kind in :class:`_LimbSections`).
+LIMB_CHAINS = (("femur", "knee", "leg"), ("tibia", "ankle", "leg"), ("humerus", "elbow", "arm"),
+               ("ulna", "distal_radioulnar", "arm"))
+
+
+def repose_limbs(skeleton: Skeleton, sections: _LimbSections, chains=LIMB_CHAINS) -> dict[str, float]:
     """Turn the template's limbs (in place, LPS) toward the limbs seen in the MRI.
 
     The MRI pose is not the template's (arms abducted or along the body,
@@ -239,8 +250,6 @@ def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float
     dict
         The turn applied per bone (degrees).
     """
-    chains = [("femur", "knee", "leg"), ("tibia", "ankle", "leg"), ("humerus", "elbow", "arm"),
-              ("ulna", "distal_radioulnar", "arm")]
     turned = {}
     for side in "rl":
         for base, distal, kind in chains:
@@ -264,6 +273,169 @@ def repose_limbs(skeleton: Skeleton, sections: _LimbSections) -> dict[str, float
             _rotate_about(skeleton, _subtree(skeleton, name), p, R)
             turned[name] = round(ang, 1)
     return turned
+
+
+def _arm_sections(body: np.ndarray, v: Volume, k: int, min_area_mm2: float, sides: str = "rl"
+                  ) -> dict[str, tuple[np.ndarray, float]]:
+    """The arms' components of a slice's body mask (as :meth:`_LimbSections.limb_centre` picks them: the
+    outermost of three or more components of ``min_area_mm2`` on each side), with their centroids' LPS z."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(body)
+    if n < 3:
+        return {}
+    flat = lab.ravel()
+    count = np.bincount(flat, minlength=n + 1)
+    big = np.flatnonzero(count * float(np.prod(v.spacing[:2])) >= min_area_mm2)
+    big = big[big > 0]
+    if len(big) < 3:
+        return {}
+    ii, jj = np.indices(lab.shape)
+    cents = np.column_stack([np.bincount(flat, ii.ravel(), n + 1)[big], np.bincount(flat, jj.ravel(), n + 1)[big]])
+    cents /= count[big][:, None]
+    world = v.index_to_world(np.column_stack([cents, np.full(len(big), k)]).astype(float))
+    out = {}
+    for side in sides:
+        i = int(np.argmin(world[:, 0]) if side == "r" else np.argmax(world[:, 0]))
+        out[side] = (lab == big[i], float(world[i, 2]))
+    return out
+
+
+def _marrow_count(image: np.ndarray, section: np.ndarray, pixel_mm: float, sigma_px: float,
+                  min_region_mm2: float, max_region_mm2: float) -> int:
+    """How many marrow regions of ``min_region_mm2`` to ``max_region_mm2`` a limb's section holds: the
+    slice rules' candidates (:func:`bonecap.segmentation.cortical.marrow_candidates`, marrow cut loose from
+    the fat by :func:`~bonecap.segmentation.cortical.detach_from_skin`), in the section's box only."""
+    from scipy import ndimage
+
+    from bonecap.segmentation import cortical
+
+    pad = int(np.ceil(4 * sigma_px)) + 2
+    ii, jj = np.nonzero(section)
+    box = (slice(max(ii.min() - pad, 0), ii.max() + pad + 1), slice(max(jj.min() - pad, 0), jj.max() + pad + 1))
+    sec = section[box]
+    med = ndimage.gaussian_filter(np.asarray(image[box], np.float32), sigma_px, mode="nearest")
+    # the interior without the outer 3 mm, where fat reaches the skin (as segment_bones)
+    inner = ndimage.binary_erosion(sec, iterations=max(1, int(round(3.0 / pixel_mm))), border_value=1)
+    muscle = cortical.muscle_level(med, inner if inner.any() else sec)
+    if not (np.isfinite(muscle) and muscle > 0):
+        return 0
+    lab, n = cortical.detach_from_skin(cortical.marrow_candidates(med, sec, muscle, pixel_mm), sec, inner, pixel_mm)
+    area = np.bincount(lab.ravel(), minlength=n + 1)[1:] * pixel_mm ** 2
+    return int(((area >= min_region_mm2) & (area <= max_region_mm2)).sum())
+
+
+def elbow_offsets(skeleton: Skeleton, vols: list[Volume], bodies: list[np.ndarray], *, sides: str = "rl",
+                  search_mm: float = 100.0, window_mm: float = 60.0, min_step: float = 0.6,
+                  min_region_mm2: float = 20.0, max_region_mm2: float = 1500.0, min_area_mm2: float = 400.0,
+                  sigma_px: float = 0.7) -> dict[str, float]:
+    """How far (LPS z, mm) each elbow lies from where the placed template has it, from the marrow.
+
+    Going down an arm at the side of a supine body, each section holds one
+    marrow -- the humerus's -- until the olecranon's and the radial head's
+    appear beside it, and two or more from there to the wrist. The level of
+    that step is the top of the forearm's bones: it is found where the
+    fraction of sections with two marrow regions (of ``min_region_mm2``,
+    the slice rules' candidates) within ``window_mm`` below a level most
+    exceeds that within ``window_mm`` above it, within ``search_mm`` of the
+    placed template's forearm top (the highest point of its ulna and radius,
+    in ``skeleton``'s LPS world). The top lies between the first slice with
+    two regions and the one above it: the midpoint is taken.
+
+    Why: the template is placed by the body's head-to-sole length, and
+    people's proportions are not the template's. A phantom with a long neck
+    and short legs had its shoulders and elbows placed 38-44 mm too high,
+    beyond the elbow split's reach (:func:`bonecap.segmentation.bones.segment_bones`):
+    its humeri came out 69 mm short and its radii took the distal humerus.
+    The step is seen in every arm section that is its own component of the
+    body (the arm apart from the trunk).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The placed template (world ``lps``).
+    vols, bodies : list
+        The registered stations and their body masks.
+    sides : str
+        ``"r"`` (−x in LPS), ``"l"``.
+    search_mm, window_mm : float
+    min_step : float
+        The step's least score (0-1: 1 is every section above with one region, every one below with
+        two); a side below it, or without an arm apart from the trunk, is left out.
+    min_region_mm2, max_region_mm2 : float
+        A marrow region's least and largest area: the distal humerus's marrow, the arm's widest, is
+        ~1 000 mm^2; the thick subcutaneous fat of an arm, where ``detach_from_skin`` keeps its deep part,
+        came in 2 600-3 000 mm^2 pieces (a phantom's upper arm, in every third section).
+    min_area_mm2, sigma_px : float
+        An arm section's least area; the in-plane noise removal (as ``segment_bones``).
+
+    Returns
+    -------
+    dict side -> float
+        The step's level minus the template's forearm top (negative: the elbow lies lower).
+
+    References
+    ----------
+    Kojima et al. (the cortical-edge rule's bright marrow in its dark cortex).
+    """
+    out: dict[str, float] = {}
+    z_top, rows = {}, {}
+    for side in sides:
+        tops = [skeleton.world_mesh(n).vertices[:, 2].max() for n in (f"ulna_{side}", f"radius_{side}")
+                if n in skeleton.bones and skeleton.bones[n].mesh is not None]
+        if tops:
+            z_top[side], rows[side] = float(max(tops)), []
+    if not z_top:
+        return out
+    reach = search_mm + window_mm
+    for v, m in zip(vols, bodies):
+        zk = v.index_to_world(np.column_stack([np.full(m.shape[2], 0.5 * (m.shape[0] - 1)),
+                                               np.full(m.shape[2], 0.5 * (m.shape[1] - 1)),
+                                               np.arange(m.shape[2])]).astype(float))[:, 2]
+        px = float(0.5 * (v.spacing[0] + v.spacing[1]))
+        for k in range(m.shape[2]):
+            near = "".join(sd for sd, zt in z_top.items() if abs(zk[k] - zt) <= reach + 10.0)
+            if not near:
+                continue
+            for side, (section, z) in _arm_sections(m[:, :, k], v, k, min_area_mm2, near).items():
+                if abs(z - z_top[side]) <= reach:
+                    rows[side].append((z, _marrow_count(v.data[:, :, k], section, px, sigma_px, min_region_mm2,
+                                                        max_region_mm2) >= 2))
+    for side, zt in z_top.items():
+        got = sorted(rows[side])
+        if len(got) < 6:
+            continue
+        z = np.array([r[0] for r in got])
+        # a section's count by the majority of it and its neighbours: a fat lobule or a vessel bright in one
+        # section is no second marrow; a marrow missed in one is not an end
+        two = np.array([r[1] for r in got], float)
+        two[1:-1] = np.median(np.column_stack([two[:-2], two[1:-1], two[2:]]), axis=1)
+        best = None
+        for i in np.flatnonzero(np.abs(z - zt) <= search_mm):
+            above = two[(z > z[i]) & (z <= z[i] + window_mm)]
+            below = two[(z <= z[i]) & (z > z[i] - window_mm)]
+            if len(above) < 3 or len(below) < 3:
+                continue
+            score = float(below.mean() - above.mean())
+            if best is None or score > best[0] + 1e-9:
+                best = (score, i)
+        if best is None or best[0] < min_step or best[1] + 1 >= len(z):
+            continue
+        i = best[1]
+        out[side] = float(0.5 * (z[i] + z[i + 1]) - zt)
+    return out
+
+
+def _girdle_root(skeleton: Skeleton, side: str) -> str | None:
+    """The topmost bone of a side's arm below the one that meets the trunk: the scapula (the clavicle stays
+    on the sternum); the humerus in a model without a shoulder girdle."""
+    name = f"humerus_{side}"
+    if name not in skeleton.bones:
+        return None
+    while (p := skeleton.bones[name].parent) is not None and p.endswith(f"_{side}") \
+            and (skeleton.bones[p].parent or "").endswith(f"_{side}"):
+        name = p
+    return name
 
 
 def shaft_line(vertices: np.ndarray, start: np.ndarray, end: np.ndarray,
@@ -1035,7 +1207,10 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
                    centre_at) -> tuple[Skeleton, dict[str, Any]]:
     """The template in LPS, scaled to the body's length, centred, and its limbs turned toward the MRI's.
 
-    Returns the placed skeleton and a report (scale, shift, per-limb turns).
+    Each arm, with its scapula, is then moved along the body's axis onto the elbow the MRI shows
+    (:func:`elbow_offsets`) and turned again.
+
+    Returns the placed skeleton and a report (scale, shift, per-limb turns, the arms' moves).
     """
     a0 = template_to_body(template, top, bottom, np.zeros(3))
     hip = np.mean([template.bones[n].landmark_in_world("hip") for n in ("hip_r", "hip_l")], axis=0)
@@ -1064,7 +1239,22 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
         for b in posed.bones.values():
             b.bone_to_world = M @ b.bone_to_world
     turned = repose_limbs(posed, sections)
-    return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned}
+    # the arms' height from the elbows the MRI shows: the scapula and the arm moved along the body's axis
+    # (the trunk's length is what the head-to-sole scale gets most wrong), then re-aimed. The clavicle
+    # stays on the sternum: moved with them, the warp carried it 3-4.5 mm worse (a phantom's, moved 3-7 mm)
+    elbows = elbow_offsets(posed, vols, bodies)
+    for side, dz in elbows.items():
+        root = _girdle_root(posed, side)
+        if root is None:
+            continue
+        M = np.eye(4)
+        M[2, 3] = dz
+        for n in _subtree(posed, root):
+            posed.bones[n].bone_to_world = M @ posed.bones[n].bone_to_world
+    if elbows:
+        turned.update(repose_limbs(posed, sections, chains=[c for c in LIMB_CHAINS if c[2] == "arm"]))
+    return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned,
+                   "elbow_shift_mm": {k: round(v, 1) for k, v in elbows.items()}}
 
 
 def reframe_subject(subject, frames: dict[str, np.ndarray]) -> None:

@@ -720,3 +720,71 @@ def test_the_build_runs_its_own_blas_on_one_thread_beside_its_workers(monkeypatc
         assert blas_threads() == before
         monkeypatch.setenv("BONECAP_WORKERS", "1")
         assert bm.build_from_mri([]) == before
+
+
+def _arms_scene(elbow_z: dict[str, float], rng_seed: int = 3):
+    """A trunk and two arms at its sides (LPS, z up the body), each arm one marrow (humerus) above
+    ``elbow_z[side]`` and two (ulna, radius) from 3 mm below it; an arm not in ``elbow_z`` has the humerus
+    only, to the bottom. Rendered by the phantom's partial-volume renderer at 2 mm x 5 mm."""
+    import trimesh
+
+    from bonecap.model import Mesh, Volume
+    from bonecap.phantom.mri import render_volume
+
+    def cyl(r, z0, z1, x=0.0, y=0.0):
+        tm = trimesh.creation.cylinder(radius=r, height=z1 - z0, sections=64)
+        tm.apply_translation([x, y, 0.5 * (z0 + z1)])
+        return Mesh(tm.vertices, tm.faces, "lps")
+
+    layers = [(cyl(110, -20, 420), "fat"), (cyl(100, -20, 420), "muscle")]
+    for side, x in (("r", -200.0), ("l", 200.0)):
+        layers += [(cyl(40, -20, 420, x), "fat"), (cyl(33, -20, 420, x), "muscle")]
+        z_e = elbow_z.get(side, -40.0)
+        layers += [(cyl(12, z_e, 420, x), "cortex"), (cyl(8, z_e + 3, 420, x), "marrow")]
+        if side in elbow_z:
+            for dx in (-14.0, 14.0):
+                layers += [(cyl(8, -20, z_e - 3, x + dx), "cortex"), (cyl(5, -20, z_e - 5, x + dx), "marrow")]
+    A = np.diag([2.0, 2.0, 5.0, 1.0])
+    A[:3, 3] = [-259.0, -79.0, 0.0]
+    img = render_volume(layers, A, (260, 80, 80), inplane_supersample=2, through_plane_samples=4, rng=rng_seed)
+    return Volume(img, A, {"slice_thickness": 5.0})
+
+
+def _forearm_template(top_z: dict[str, float]):
+    """Ulnae and radii (boxes) whose tops lie at ``top_z`` (LPS), as a placed template has them."""
+    import trimesh
+
+    from bonecap.model import Bone, Mesh, Skeleton
+
+    bones = {}
+    for side, x in (("r", -200.0), ("l", 200.0)):
+        for name, dx in (("ulna", -14.0), ("radius", 14.0)):
+            tm = trimesh.creation.box(extents=(16, 16, 240))
+            tm.apply_translation([x + dx, 0.0, top_z[side] - 120.0])
+            bones[f"{name}_{side}"] = Bone(f"{name}_{side}", mesh=Mesh(tm.vertices, tm.faces, f"{name}_{side}"))
+    return Skeleton(bones, world="lps")
+
+
+def test_elbow_offsets_find_where_the_second_marrow_begins():
+    """The arms' height from the MRI (build_mri.elbow_offsets): the forearm bones' tops (the true elbow
+    step) at 200 mm (right) and 230 mm (left); a template placed 40 mm too high on the right and 25 mm too
+    low on the left is told to move by -40 and +25 within the slice pitch (5 mm). An arm whose sections hold
+    one marrow all the way (no forearm in the scan) gives no offset."""
+    from bonecap.build_mri import elbow_offsets
+    from bonecap.segmentation.skin import segment_body
+
+    vol = _arms_scene({"r": 200.0, "l": 230.0})
+    body = segment_body(vol)
+    true_top = {"r": 197.0, "l": 227.0}                 # the forearm bones' cortex begins 3 mm below the step
+    placed = {"r": true_top["r"] + 40.0, "l": true_top["l"] - 25.0}
+    got = elbow_offsets(_forearm_template(placed), [vol], [body])
+    assert set(got) == {"r", "l"}
+    for side in "rl":
+        assert abs(got[side] - (true_top[side] - placed[side])) <= 5.0, (side, got[side])
+    # the template where the MRI has it: no move beyond the pitch
+    got = elbow_offsets(_forearm_template(true_top), [vol], [body])
+    assert max(abs(v) for v in got.values()) <= 5.0, got
+
+    one = _arms_scene({"r": 200.0})
+    got = elbow_offsets(_forearm_template(placed), [one], [segment_body(one)])
+    assert "l" not in got and abs(got["r"] - (true_top["r"] - placed["r"])) <= 5.0, got
