@@ -788,3 +788,47 @@ def test_elbow_offsets_find_where_the_second_marrow_begins():
     one = _arms_scene({"r": 200.0})
     got = elbow_offsets(_forearm_template(placed), [one], [segment_body(one)])
     assert "l" not in got and abs(got["r"] - (true_top["r"] - placed["r"])) <= 5.0, got
+
+
+def test_repose_limbs_aims_the_forearm_bones_not_the_ulnar_joint():
+    """build_mri.repose_limbs with the arms' "bones" aim: the forearm's section centre, not the ulna's distal
+    radioulnar joint (which lies at the wrist's ulnar border), is turned onto the limb's section centre. A
+    forearm whose bones hang 12 deg from the template's: aiming the bones recovers the direction within
+    1 deg; aiming the joint, 12 mm beside the bones' middle on a 240 mm forearm, misses it by ~3 deg."""
+    import trimesh
+
+    from bonecap.build_mri import repose_limbs
+    from bonecap.model import Bone, Mesh, Skeleton
+
+    def forearm():
+        bones = {"humerus_r": Bone("humerus_r", joint_centres={"shoulder": [0, 0, 280.0], "elbow": [0, 0, 0]})}
+        for name, x, parent in (("ulna_r", -12.0, "humerus_r"), ("radius_r", 12.0, "ulna_r")):
+            tm = trimesh.creation.box(extents=(14, 14, 240))
+            tm.apply_translation([x, 0.0, -120.0])
+            joints = {"elbow": [0, 0, 0], "distal_radioulnar": [-12.0, 0, -235.0]} if name == "ulna_r" else {}
+            bones[name] = Bone(name, parent, Mesh(tm.vertices, tm.faces, name), joint_centres=joints)
+        return Skeleton(bones, world="lps")
+
+    tilt = np.radians(12.0)
+    axis_true = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])        # the forearm's middle, from the elbow
+
+    class Sections:                       # the limb's section centre at height z: on the true forearm's middle
+        @staticmethod
+        def limb_centre(z, side, kind):
+            return axis_true * (z / axis_true[2])
+
+    def direction_error(sk):
+        u = sk.bones["ulna_r"]
+        d = u.bone_to_world[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        return float(np.degrees(np.arccos(np.clip(d @ axis_true, -1, 1))))
+
+    errors = {}
+    for aim in ("bones", "joint"):
+        sk = forearm()
+        turned = repose_limbs(sk, Sections(), chains=[("ulna", "distal_radioulnar", "arm", aim)])
+        assert "ulna_r" in turned
+        # the radius turns with the ulna (its subtree)
+        assert np.allclose(sk.bones["radius_r"].bone_to_world, sk.bones["ulna_r"].bone_to_world)
+        errors[aim] = direction_error(sk)
+    assert errors["bones"] < 1.0, errors
+    assert errors["joint"] > 2.0, errors
