@@ -835,6 +835,12 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     if functional and static_trial is None:
         raise InputError("--functional needs --static (the trials correct the static's binding)", functional[0])
     functional_trials = [(read_c3d(f, subject=subject_name), str(f)) for f in functional or ()]
+    if mri and seeds is None and labels is None and not _placeable(template):
+        # a whole-body MRI places the template by the embedded skeleton's bones and joints (fail before
+        # the stations are read, not at the seeds with a KeyError)
+        raise InputError("this template cannot be placed on a whole-body MRI (the MRI path needs the embedded "
+                         "skeleton's hip_r / hip_l bones with their 'hip' joints): use --generic default, or give "
+                         "--seeds SEEDS.yaml or --labels LABELMAP", generic)
     lap("template")
 
     # 1. stations
@@ -1224,6 +1230,12 @@ def _moved(template: Skeleton, T: np.ndarray, s: float) -> Skeleton:
         b.bone_to_world = M @ b.bone_to_world
     scaled.world = "lps"
     return scaled
+
+
+def _placeable(template: Skeleton) -> bool:
+    """Whether :func:`place_template` can place ``template``: the embedded skeleton's hip bones and joints
+    (an OpenSim model names its bodies and joints otherwise: its pelvis holds both hips)."""
+    return all(n in template.bones and "hip" in template.bones[n].joint_centres for n in ("hip_r", "hip_l"))
 
 
 def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarray], top: float, bottom: float,

@@ -832,3 +832,19 @@ def test_repose_limbs_aims_the_forearm_bones_not_the_ulnar_joint():
         errors[aim] = direction_error(sk)
     assert errors["bones"] < 1.0, errors
     assert errors["joint"] > 2.0, errors
+
+
+def test_an_opensim_template_on_a_whole_body_mri_is_refused_before_any_work(phantom, shared_data, tmp_path):
+    """The whole-body MRI path places the template by the embedded skeleton's hip bones and joints; an OpenSim
+    model (its pelvis holds both hips) fails with one clear line naming the model, before the stations are
+    read, and writes nothing (it crashed with a KeyError at the seeds)."""
+    from bonecap.build_subject import run_build_subject
+    from bonecap.errors import InputError
+
+    osim = shared_data / "bones/opensim/models/Rajagopal2016.osim"
+    stations = sorted(str(p) for p in (phantom / "mri").glob("station_*"))
+    out = tmp_path / "s"
+    with pytest.raises(InputError, match="cannot be placed on a whole-body MRI") as err:
+        run_build_subject(stations, out, generic=osim)
+    assert "Rajagopal2016.osim" in str(err.value)
+    assert not out.exists()
