@@ -286,7 +286,8 @@ def repose_limbs(skeleton: Skeleton, sections: _LimbSections, chains=LIMB_CHAINS
 def _section_centroid(skeleton: Skeleton, bones: list[str], z: float, fallback: np.ndarray,
                       half_mm: float = 10.0) -> np.ndarray:
     """The centroid of ``bones``' mesh vertices (world) within ``half_mm`` of level ``z`` (LPS); ``fallback``
-    when fewer than 8 lie there."""
+    when fewer than 8 lie there. (The template's meshes are decimated to about even vertex spacing, so the
+    vertices' mean stands for the section's.)"""
     pts = []
     for n in bones:
         b = skeleton.bones[n]
@@ -1287,6 +1288,7 @@ def place_template(template: Skeleton, vols: list[Volume], bodies: list[np.ndarr
         for n in _subtree(posed, root):
             posed.bones[n].bone_to_world = M @ posed.bones[n].bone_to_world
     if elbows:
+        # (the report keeps the arms' second turns, from where they were moved)
         turned.update(repose_limbs(posed, sections, chains=[c for c in LIMB_CHAINS if c[2] == "arm"]))
     return posed, {"scale": s, "shift_mm": shift.tolist(), "limb_turns_deg": turned,
                    "elbow_shift_mm": {k: round(v, 1) for k, v in elbows.items()}}
