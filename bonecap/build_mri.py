@@ -169,6 +169,28 @@ def _rotate_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, R: n
         skeleton.bones[n].bone_to_world = M @ skeleton.bones[n].bone_to_world
 
 
+def _body_components(body: np.ndarray, v: Volume, k: int, min_area_mm2: float):
+    """A slice's body components of at least ``min_area_mm2``: ``(labels, their ids, areas mm^2, LPS
+    centroids)`` (ids ascending), or None without one. Areas and centroids by counting (ndimage's
+    per-label statistics took ~2 s a body)."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(body)
+    if n == 0:
+        return None
+    flat = lab.ravel()
+    count = np.bincount(flat, minlength=n + 1)[1:]
+    areas = count * float(np.prod(v.spacing[:2]))
+    keep = areas >= min_area_mm2
+    if not keep.any():
+        return None
+    ii, jj = (a.ravel() for a in np.indices(body.shape, dtype=float))
+    cents = np.column_stack([np.bincount(flat, ii, n + 1)[1:], np.bincount(flat, jj, n + 1)[1:]])
+    cents /= np.maximum(count, 1)[:, None]
+    world = v.index_to_world(np.column_stack([cents[keep], np.full(int(keep.sum()), k)]).astype(float))
+    return lab, np.flatnonzero(keep) + 1, areas[keep], world
+
+
 class _LimbSections:
     """Centroids of the body's separate components per slice (LPS mm): the limbs.
 
@@ -179,29 +201,15 @@ class _LimbSections:
     """
 
     def __init__(self, vols: list[Volume], bodies: list[np.ndarray], min_area_mm2: float = 400.0):
-        from scipy import ndimage
-
         self.z, self.parts = [], []
         for v, m in zip(vols, bodies):
-            area_px = float(np.prod(v.spacing[:2]))
-            ii, jj = (a.ravel() for a in np.indices(m.shape[:2], dtype=float))
             for k in range(m.shape[2]):
-                lab, n = ndimage.label(m[:, :, k])
-                if n == 0:
+                comps = _body_components(m[:, :, k], v, k, min_area_mm2)
+                if comps is None:
                     continue
-                # areas and centroids by counting (ndimage's per-label statistics took ~2 s a body)
-                flat = lab.ravel()
-                count = np.bincount(flat, minlength=n + 1)[1:]
-                areas = count * area_px
-                cents = np.column_stack([np.bincount(flat, ii, n + 1)[1:], np.bincount(flat, jj, n + 1)[1:]])
-                cents /= np.maximum(count, 1)[:, None]
-                keep = areas >= min_area_mm2
-                if not keep.any():
-                    continue
-                ijk = np.column_stack([cents[keep], np.full(int(keep.sum()), k)])
-                world = v.index_to_world(ijk.astype(float))
+                _, _, areas, world = comps
                 self.z.append(float(world[:, 2].mean()))
-                self.parts.append((world, areas[keep]))
+                self.parts.append((world, areas))
         self.z = np.asarray(self.z)
 
     def limb_centre(self, z: float, side: str, kind: str, window_mm: float = 12.0) -> np.ndarray | None:
@@ -303,25 +311,14 @@ def _arm_sections(body: np.ndarray, v: Volume, k: int, min_area_mm2: float, side
                   ) -> dict[str, tuple[np.ndarray, float]]:
     """The arms' components of a slice's body mask (as :meth:`_LimbSections.limb_centre` picks them: the
     outermost of three or more components of ``min_area_mm2`` on each side), with their centroids' LPS z."""
-    from scipy import ndimage
-
-    lab, n = ndimage.label(body)
-    if n < 3:
+    comps = _body_components(body, v, k, min_area_mm2)
+    if comps is None or len(comps[1]) < 3:
         return {}
-    flat = lab.ravel()
-    count = np.bincount(flat, minlength=n + 1)
-    big = np.flatnonzero(count * float(np.prod(v.spacing[:2])) >= min_area_mm2)
-    big = big[big > 0]
-    if len(big) < 3:
-        return {}
-    ii, jj = np.indices(lab.shape)
-    cents = np.column_stack([np.bincount(flat, ii.ravel(), n + 1)[big], np.bincount(flat, jj.ravel(), n + 1)[big]])
-    cents /= count[big][:, None]
-    world = v.index_to_world(np.column_stack([cents, np.full(len(big), k)]).astype(float))
+    lab, ids, _, world = comps
     out = {}
     for side in sides:
         i = int(np.argmin(world[:, 0]) if side == "r" else np.argmax(world[:, 0]))
-        out[side] = (lab == big[i], float(world[i, 2]))
+        out[side] = (lab == ids[i], float(world[i, 2]))
     return out
 
 
