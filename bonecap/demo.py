@@ -270,7 +270,8 @@ def format_report(report: dict[str, Any]) -> str:
         es, em = ev["subject"], ev["motion"]
         fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
         lines.append(f"evaluate vs truth: long-bone Dice median {fmt(es.get('long_bone_dice_median'))} "
-                     f"(all bones' {fmt(es.get('dice'))}, oracle {fmt(es.get('oracle_dice'))}), "
+                     f"(all bones' {fmt(es.get('dice'))}, as the personal skeleton's label maps "
+                     f"{fmt(es.get('personal_dice'))}, oracle {fmt(es.get('oracle_dice'))}), "
                      f"personal surface {fmt(es.get('personal_surface_mean_mm'))} mm, "
                      f"bone orientation median {em['deg_median_over_bones']:.2f} deg, "
                      f"origin {em['mm_median_over_bones']:.1f} mm")

@@ -12,7 +12,8 @@ Motion (:func:`evaluate_motion`)
 Subject (:func:`evaluate_subject`)
     Per bone: surface distances of the extracted and the personal meshes to
     the true meshes, the affine-only baseline, the segmentation Dice against
-    the truth labels and the oracle's, marker binding errors, capsule centres.
+    the truth labels and the oracle's, the personal skeleton's as a label map
+    (``personal_dice``), marker binding errors, capsule centres.
 """
 
 from __future__ import annotations
@@ -175,7 +176,10 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
     body. Every station voxel is mapped back to the body point imaged there
     (``true_to_nominal`` inverted) and the truth label is read at that point
     (nearest voxel), so ours and the oracle are scored against the same
-    reference, voxel by voxel, over all stations.
+    reference, voxel by voxel, over all stations. Where build-subject wrote the
+    personal skeleton's label maps beside ours (``personal_labels``, see
+    :func:`bonecap.build_mri.personal_labels`), they are scored the same way
+    (``personal_dice``).
     """
     import json
 
@@ -193,13 +197,18 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
     mdata = np.asarray(merged.data).astype(np.int32)
     m_inv = np.linalg.inv(merged.affine)
     names = list(ids_truth)
-    counts = np.zeros((len(names), 4), dtype=np.int64)
+    counts = np.zeros((len(names), 6), dtype=np.int64)
+    any_personal = False
     n_ids = max(ids_truth.values()) + 1
     ids_vec = np.array([ids_truth[b] for b in names])
     # our label ids -> the truth's ids for the same bone name (0 when unknown)
     our_to_truth = np.zeros(max(ids_ours.values(), default=0) + 1, dtype=np.int64)
     for bone, i in ids_ours.items():
         our_to_truth[i] = ids_truth.get(bone, 0)
+    ids_personal = doc.get("personal_ids") or {}
+    personal_to_truth = np.zeros(max(ids_personal.values(), default=0) + 1, dtype=np.int64)
+    for bone, i in ids_personal.items():
+        personal_to_truth[i] = ids_truth.get(bone, 0)
     for st in doc["stations"]:
         A = np.asarray(st["nominal_affine"], float)
         match = [t for t in truth if np.allclose(np.asarray(t["affine_voxel_to_lps"], float), A, atol=1e-3)]
@@ -211,6 +220,13 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
         oracle = np.asarray(read_nifti(truth_dir / "labels" / f"{t['name']}_oracle.nii.gz").data).astype(np.int32)
         if lab.shape != oracle.shape:
             continue
+        pers = None
+        if st.get("personal_labels") and ids_personal:
+            pers = np.asarray(read_nifti(subject_dir / st["personal_labels"]).data).astype(np.int32)
+            if pers.shape != lab.shape:
+                raise DataError(f"personal labels of station {st.get('index')} are {pers.shape}, "
+                                f"its labels {lab.shape}", subject_dir / st["personal_labels"])
+            any_personal = True
         # station voxel -> nominal LPS -> true LPS -> merged voxel, slice by slice to bound memory
         M = m_inv @ to_true @ A
         ii, jj = np.meshgrid(np.arange(lab.shape[0]), np.arange(lab.shape[1]), indexing="ij")
@@ -222,6 +238,10 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
             tl[ok] = mdata[q[ok, 0], q[ok, 1], q[ok, 2]]
             ul = our_to_truth[np.clip(lab[:, :, k].ravel(), 0, len(our_to_truth) - 1)]
             ol = oracle[:, :, k].ravel()
+            if pers is not None:
+                pl = personal_to_truth[np.clip(pers[:, :, k].ravel(), 0, len(personal_to_truth) - 1)]
+                counts[:, 4] += np.bincount(tl[(tl == pl) & (tl > 0)], minlength=n_ids)[ids_vec]
+                counts[:, 5] += (np.bincount(pl, minlength=n_ids) + np.bincount(tl, minlength=n_ids))[ids_vec]
             if not (tl.any() or ul.any() or ol.any()):
                 continue
             # confusion counts per truth id, vectorised over the slice
@@ -237,6 +257,8 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
             continue
         out[bone] = {"dice": float(2 * c[0] / c[1]) if c[1] else float("nan"),
                      "oracle_dice": float(2 * c[2] / c[3])}
+        if any_personal:
+            out[bone]["personal_dice"] = float(2 * c[4] / c[5]) if c[5] else float("nan")
     return out
 
 
@@ -246,7 +268,8 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     Returns
     -------
     dict
-        ``bones``: per bone ``dice``, ``oracle_dice``, ``extracted_surface_mean_mm``/``_p95_mm``,
+        ``bones``: per bone ``dice``, ``oracle_dice``, ``personal_dice`` (the personal skeleton's label
+        maps, where build-subject wrote them), ``extracted_surface_mean_mm``/``_p95_mm``,
         ``personal_surface_mean_mm``/``_p95_mm``, ``affine_only_surface_mean_mm``;
         ``markers``: per marker ``marker_binding_mm``; ``capsules``: centre errors;
         ``summary``: medians.
@@ -317,7 +340,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
         v = [r[key] for r in result["bones"].values() if key in r and np.isfinite(r[key])]
         return float(np.median(v)) if v else None
 
-    result["summary"] = {k: med(k) for k in ("dice", "oracle_dice", "extracted_surface_mean_mm",
+    result["summary"] = {k: med(k) for k in ("dice", "oracle_dice", "personal_dice", "extracted_surface_mean_mm",
                                             "personal_surface_mean_mm", "affine_only_surface_mean_mm")}
     # the affine-only baseline exists only for bones warped onto their own extracted surface:
     # compare the warp with it on those bones alone (medians over different bone sets mislead)
@@ -335,7 +358,8 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
 
 def format_subject_table(result: dict[str, Any]) -> str:
     """A text table of :func:`evaluate_subject`."""
-    keys = [("dice", "dice"), ("oracle_dice", "oracle"), ("extracted_surface_mean_mm", "extr_mm"),
+    keys = [("dice", "dice"), ("oracle_dice", "oracle"), ("personal_dice", "pers_dice"),
+            ("extracted_surface_mean_mm", "extr_mm"),
             ("personal_surface_mean_mm", "pers_mm"), ("personal_surface_p95_mm", "pers_p95"),
             ("affine_only_surface_mean_mm", "affine_mm")]
     lines = [f"{'bone':<12}" + "".join(f"{h:>10}" for _, h in keys)]

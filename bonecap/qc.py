@@ -34,7 +34,8 @@ def _plt():
 
 
 def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.ndarray | None = None, *,
-                   n_slices: int = 12, title: str = "", pixel_aspect: float = 1.0) -> Path:
+                   n_slices: int = 12, title: str = "", pixel_aspect: float = 1.0,
+                   outline: np.ndarray | None = None) -> Path:
     """Write a mosaic of ``n_slices`` evenly spaced axial slices with label contours.
 
     Parameters
@@ -42,6 +43,9 @@ def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.n
     image : ndarray [i, j, k]
     labels : ndarray [i, j, k] of int
     body : ndarray [i, j, k] of bool, optional
+    outline : ndarray [i, j, k] of int, optional
+        A second label map drawn as one yellow dashed outline of all its bones
+        (the personal skeleton over the slice rules' contours).
     """
     plt = _plt()
     K = image.shape[2]
@@ -69,6 +73,9 @@ def contour_mosaic(path: Path, image: np.ndarray, labels: np.ndarray, body: np.n
             # tab20's saturated colours first, so that neighbouring ids (femur 1, tibia 2) differ at a glance
             c = (2 * (int(lab) - 1)) % 20 + ((int(lab) - 1) // 10) % 2
             ax.contour((labels[:, :, k] == lab).T.astype(float), levels=[0.5], colors=[cmap(c)], linewidths=0.7)
+        if outline is not None and outline[:, :, k].any():
+            ax.contour((outline[:, :, k] > 0).T.astype(float), levels=[0.5], colors="yellow", linewidths=0.5,
+                       linestyles="dashed")
         ax.set_title(f"slice {k}", fontsize=7)
         ax.axis("off")
     for ax in axes[len(ks):]:
@@ -105,9 +112,12 @@ def write_build_qc(qc_dir: Path, subject, data: dict[str, Any], report: dict[str
         safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in str(name))
         sp = v.spacing
         body = data.get("bodies", [None] * len(data["vols"]))[n] if data.get("bodies") else None
+        personal = data["personal"][n] if data.get("personal") else None
+        what = "bone contours (colours), personal skeleton (yellow dashes)" if personal is not None \
+            else "bone contours (colours)"
         mosaics.append(((qc_dir / f"contours_{n + 1:02d}_{safe}.png", v.data, lab, body),
-                        {"title": f"{name}: bone contours (colours) and skin (cyan)",
-                         "pixel_aspect": float(sp[0] / sp[1])}))
+                        {"title": f"{name}: {what} and skin (cyan)", "pixel_aspect": float(sp[0] / sp[1]),
+                         "outline": personal}))
     # the stations' mosaics (matplotlib, ~1 s each) in worker processes while the skeleton's views are
     # rendered here (VTK's off-screen window stays in this process)
     drawing = fork_start(lambda m: contour_mosaic(*m[0], **m[1]), mosaics)

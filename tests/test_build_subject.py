@@ -120,12 +120,85 @@ def test_evaluate_subject_cli(built, phantom, cli):
     assert r["summary"]["marker_binding_median_mm"] is not None
     # the oracle (the truth voxelised on each station) is close to the truth
     assert r["summary"]["oracle_dice"] > 0.7
+    # the personal skeleton's label maps are scored on the bones the rules segment, and only there
+    scored = {b for b, v in r["bones"].items() if "personal_dice" in v}
+    assert scored == {b for b, v in r["bones"].items() if "dice" in v}
+    assert all(0 <= r["bones"][b]["personal_dice"] <= 1 for b in scored)
+
+
+def test_personal_dice_of_the_oracle_is_the_oracles(built, phantom, tmp_path):
+    """evaluate subject scores the personal label maps as it scores the oracle: a subject folder whose
+    personal maps are the oracle's own station labels (voxel for voxel on the station grids, ids mapped
+    to its personal ids) gets personal_dice == oracle_dice on every bone."""
+    import shutil
+
+    from bonecap.evaluate import evaluate_subject
+    from bonecap.io.imaging import read_nifti, write_nifti
+    from bonecap.model import Volume
+
+    out, _ = built
+    sub = tmp_path / "s"
+    shutil.copytree(out, sub)
+    doc = json.loads((sub / "stations.json").read_text())
+    truth_ids = json.loads((phantom / "truth" / "labels.json").read_text())["ids"]
+    truth_st = json.loads((phantom / "truth" / "stations.json").read_text())["stations"]
+    to_personal = np.zeros(max(truth_ids.values()) + 1, np.int16)
+    for bone, i in truth_ids.items():
+        to_personal[i] = doc["personal_ids"].get(bone, 0)
+    for st in doc["stations"]:
+        t = next(t for t in truth_st if np.allclose(t["affine_voxel_to_lps"], st["nominal_affine"], atol=1e-3))
+        oracle = read_nifti(phantom / "truth" / "labels" / f"{t['name']}_oracle.nii.gz")
+        write_nifti(Volume(to_personal[np.asarray(oracle.data).astype(int)], oracle.affine), sub / st["personal_labels"])
+    r = evaluate_subject(sub, phantom / "truth")
+    rows = [v for v in r["bones"].values() if "personal_dice" in v]
+    assert len(rows) > 10
+    for v in rows:
+        assert v["personal_dice"] == pytest.approx(v["oracle_dice"], abs=1e-12)
     # the warp-vs-affine comparison is made on the same bones (those with an affine-only mesh)
     paired = [(b["personal_surface_mean_mm"], b["affine_only_surface_mean_mm"]) for b in r["bones"].values()
               if b.get("affine_only_surface_mean_mm") is not None]
     if paired:
         assert r["summary"]["personal_surface_mean_mm_paired"] == pytest.approx(np.median([p for p, _ in paired]))
         assert r["summary"]["affine_only_over_personal"] == pytest.approx(np.median([a / p for p, a in paired]))
+
+
+def test_personal_label_maps_lie_on_the_station_grids(built):
+    """build-subject writes the personal skeleton voxelised on every station's grid beside the rules'
+    labels: the same registered affine and shape, the rules' ids kept, every bone with a mesh an id, and
+    a bone's labelled volume within a tenth of a voxel's rim of its mesh's (1-3 % here) where a station
+    holds it whole."""
+    from bonecap.io.imaging import read_nifti
+    from bonecap.subject import read_subject
+
+    out, _ = built
+    doc = json.loads((out / "stations.json").read_text())
+    sk = read_subject(out).skeleton
+    ids = doc["personal_ids"]
+    assert {k: ids[k] for k in doc["ids"]} == doc["ids"]
+    assert {n for n in sk.names if sk.bones[n].mesh is not None} == set(ids)
+    assert len(set(ids.values())) == len(ids)
+    whole = 0
+    for st in doc["stations"]:
+        vol = read_nifti(out / st["personal_labels"])
+        assert list(vol.data.shape) == st["shape"]
+        assert np.allclose(vol.affine, st["registered_affine"], atol=1e-4)
+        data = np.asarray(vol.data)
+        voxel = abs(np.linalg.det(vol.affine[:3, :3]))
+        corners = np.array([[i, j, k, 1.0] for i in (0, data.shape[0] - 1) for j in (0, data.shape[1] - 1)
+                            for k in (0, data.shape[2] - 1)]) @ vol.affine.T
+        lo, hi = corners[:, :3].min(0), corners[:, :3].max(0)
+        for name in ("femur_r", "tibia_r", "humerus_r"):
+            m = sk.world_mesh(name)
+            if not (np.all(m.vertices.min(0) > lo + 10) and np.all(m.vertices.max(0) < hi - 10)):
+                continue
+            import trimesh
+
+            tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
+            got = np.count_nonzero(data == ids[name]) * voxel
+            rim = tm.area * 0.1 * float(np.min(np.linalg.norm(vol.affine[:3, :3], axis=0)))
+            assert abs(got - tm.volume) < rim, (name, got, tm.volume, rim)
+            whole += 1
+    assert whole, "no station holds a long bone whole"
 
 
 def test_labels_path_reaches_the_truth(phantom, tmp_path):

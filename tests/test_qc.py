@@ -24,3 +24,23 @@ def test_mosaic_panels_fill_the_page(tmp_path, shape, max_ratio):
     px = np.asarray(Image.open(p).convert("RGB"), float)
     blue = (px[..., 2] > 150) & (px[..., 0] < 80)
     assert blue.sum() > 200
+
+
+def test_mosaic_draws_the_personal_outline_in_yellow(tmp_path):
+    """``outline`` (the personal skeleton's label map) is drawn as yellow dashes over the rules' contours;
+    without it the page has no yellow."""
+    from PIL import Image
+
+    shape = (120, 120, 6)
+    img = np.random.default_rng(1).random(shape).astype(np.float32)
+    lab = np.zeros(shape, np.int32)
+    lab[30:60, 30:60, :] = 1
+    outline = np.zeros(shape, np.int16)
+    outline[50:100, 50:100, :] = 7
+
+    def yellow(p):
+        px = np.asarray(Image.open(p).convert("RGB"), float)
+        return int(((px[..., 0] > 150) & (px[..., 1] > 150) & (px[..., 2] < px[..., 0] - 80)).sum())
+
+    assert yellow(contour_mosaic(tmp_path / "a.png", img, lab, None)) == 0
+    assert yellow(contour_mosaic(tmp_path / "b.png", img, lab, None, outline=outline)) > 100

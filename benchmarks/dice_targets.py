@@ -1,0 +1,73 @@
+"""Issue #5's Dice targets over ``bonecap evaluate subject --json`` results: the slice rules' labels and
+the personal skeleton's label maps, side by side.
+
+Usage::
+
+    bonecap evaluate subject SUBJECT_DIR --truth PHANTOM/truth --json > ev.json
+    python benchmarks/dice_targets.py ev.json [ev2.json ...]
+
+Per evaluation and bone group (long bones: target Dice >= oracle - 0.03; pelvis, sacrum, scapulae,
+patellae: >= oracle - 0.06; the vertebrae by region, also >= oracle - 0.06): the median Dice of the
+rules' labels (``dice``), of the personal skeleton's maps (``personal_dice``) and of the oracle, and
+how many bones of the group meet the target with each. Prints a markdown table.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+LONG = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
+GROUPS = {
+    "long bones": lambda b: b.startswith(LONG),
+    "pelvis, sacrum": lambda b: b.startswith(("hip_", "sacrum")),
+    "scapulae, patellae": lambda b: b.startswith(("scapula", "patella")),
+    "lumbar": lambda b: b[0] == "l" and b[1:].isdigit(),
+    "thoracic": lambda b: b[0] == "t" and b[1:].isdigit(),
+    "cervical": lambda b: b[0] == "c" and b[1:].isdigit(),
+}
+
+
+def rows(path: Path) -> list[str]:
+    bones = json.loads(path.read_text())["bones"]
+    out = []
+    for group, member in GROUPS.items():
+        sel = {b: r for b, r in bones.items() if member(b) and "dice" in r and "oracle_dice" in r}
+        if not sel:
+            continue
+        margin = 0.03 if group == "long bones" else 0.06
+
+        def med(key):
+            v = [r[key] for r in sel.values() if r.get(key) is not None and np.isfinite(r[key])]
+            return f"{np.median(v):.3f}" if v else "-"
+
+        def meet(key):
+            return sum(1 for r in sel.values() if r.get(key) is not None and r[key] >= r["oracle_dice"] - margin)
+
+        has_personal = any("personal_dice" in r for r in sel.values())
+        out.append(f"| {path.parent.name}/{path.name} | {group} | {len(sel)} | {med('dice')} | "
+                   f"{med('personal_dice') if has_personal else '-'} | {med('oracle_dice')} | {meet('dice')} | "
+                   f"{meet('personal_dice') if has_personal else '-'} |")
+    return out
+
+
+def main(argv: list[str]) -> int:
+    if not argv:
+        print(__doc__)
+        return 2
+    print("| evaluation | bones | n | Dice, rules | Dice, personal | oracle | meet, rules | meet, personal |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for a in argv:
+        p = Path(a)
+        if not p.is_file():
+            print(f"{p}: no such file", file=sys.stderr)
+            return 2
+        print("\n".join(rows(p)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
