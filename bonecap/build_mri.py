@@ -1078,7 +1078,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         # (with --labels the user's own map is the segmentation: nothing of ours to write)
         station_pieces = list(zip(pieces, vols)) if labels is None else []
         t0 = time.perf_counter()
-        personal_ids, personal = personal_label_meshes(subject.skeleton, ids) if station_pieces else ({}, [])
+        personal_ids, personal = personal_label_meshes(subject.skeleton, ids) if pieces else ({}, [])
         qc_data["personal"] = []
         spent = time.perf_counter() - t0
         for n, ((lab, aff), v) in enumerate(station_pieces):
@@ -1092,16 +1092,26 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
             if personal:
                 t0 = time.perf_counter()
                 rel = f"labels/personal_station_{n + 1}.nii.gz"
-                plab = personal_labels(personal, aff, lab.shape, v).astype(np.int16)
+                plab = personal_labels(personal, aff, lab.shape, v)      # uint16: any id a label table uses
                 write_nifti(Volume(plab, aff), folder / rel)
                 stations[-1]["personal_labels"] = rel
                 qc_data["personal"].append(plab)     # drawn over the rules' contours
                 spent += time.perf_counter() - t0
+        doc: dict[str, Any] = {"ids": ids, "stations": stations}
+        if personal and labels is not None:
+            # the user's map is the segmentation; the personal skeleton on its grid completes it with the
+            # bones it lacks (ribs, hands, feet, the skull) and shows where the warp left the labels
+            t0 = time.perf_counter()
+            lab, aff = pieces[0]
+            rel = "labels/personal_labelmap.nii.gz"
+            (folder / "labels").mkdir(parents=True, exist_ok=True)
+            write_nifti(Volume(personal_labels(personal, aff, lab.shape), aff), folder / rel)
+            doc["personal_on_label_map"] = {"labels": rel, "label_map": str(labels), "affine": aff.tolist(),
+                                            "shape": list(lab.shape)}
+            spent += time.perf_counter() - t0
         if personal:
             # part of the build's time (the speed target counts it; the QC pictures it does not)
             timings["personal labels"] = round(spent, 2)
-        doc = {"ids": ids, "stations": stations}
-        if personal:
             doc["personal_ids"] = personal_ids
         (folder / "stations.json").write_text(json.dumps(doc, indent=1))
         qc(folder)
@@ -1134,27 +1144,29 @@ def personal_label_meshes(skeleton: Skeleton, ids: dict[str, int]) -> tuple[dict
 
 def personal_labels(meshes: list[tuple[Mesh, int]], affine: np.ndarray, shape, volume: Volume | None = None
                     ) -> np.ndarray:
-    """The personal skeleton as a label map on one station's grid: the model-based segmentation.
+    """The personal skeleton as a label map on one grid (a station's, or a user's label map's).
 
     The density rule (Kojima et al.) finds the bones with little cortex in
     pieces: in a T2-weighted contrast a scapula is nearly all dark cortex and
     a vertebra loses its posterior elements (hips, scapulae and vertebrae:
     Dice 0.0-0.5 against the truth on the phantoms). The personal skeleton,
     the template warped onto what the rules did find and carried from its
-    neighbours where they found nothing, covers every bone whole. Voxelised here on the station's acquisition grid
+    neighbours where they found nothing, covers every bone whole: a
+    model-based segmentation [1]_. Voxelised on a station's acquisition grid
     (as registered: ``affine`` is voxel -> the subject's world) with the same
-    sub-voxel sampling as a phantom's oracle
+    sub-voxel sampling as a phantom's oracle on such grids
     (:func:`bonecap.phantom.render.voxelise_labels`: a voxel takes a bone
-    covering at least half of it over the slice's thickness), it opens over
-    the images in 3D Slicer or ITK-SNAP beside the rules' own labels and is
-    scored like them (``bonecap evaluate subject``'s ``personal_dice``).
+    covering at least half of it over the slice's thickness; fewer samples on
+    grids finer than 2 mm x 5 mm), it opens over the images in 3D Slicer or
+    ITK-SNAP beside the rules' own labels and is scored like them (``bonecap
+    evaluate subject``'s ``personal_dice``).
 
     Parameters
     ----------
     meshes : list of (Mesh, int)
         From :func:`personal_label_meshes` (world frame, LPS mm).
     affine : ndarray (4, 4)
-        The station's voxel -> world (mm).
+        The grid's voxel -> world (mm).
     shape : tuple of 3 int
     volume : Volume, optional
         The station, for its slice thickness (DICOM ``SliceThickness``; else the spacing).
@@ -1163,11 +1175,25 @@ def personal_labels(meshes: list[tuple[Mesh, int]], affine: np.ndarray, shape, v
     -------
     ndarray (I, J, K) of uint16
         0 outside every bone.
+
+    References
+    ----------
+    .. [1] Heimann, T. & Meinzer, H.-P. (2009). Statistical shape models for
+       3D medical image segmentation: a review. Medical Image Analysis 13(4),
+       543-563.
     """
     from bonecap.phantom.render import voxelise_labels
 
     thickness = (volume.metadata.get("slice_thickness") if volume is not None else None) or None
-    return voxelise_labels(meshes, affine, shape, slice_thickness_mm=float(thickness) if thickness else None)
+    spacing = np.linalg.norm(np.asarray(affine, float)[:3, :3], axis=0)
+    through = float(thickness) if thickness else float(spacing[2])
+    # samples ~0.5 mm apart in plane and ~1.25 mm through the slice, at most the oracle's 4 x 4 (a
+    # whole-body station's 1.8 mm pixels and 5 mm slices get exactly that); a fine grid (a CT label
+    # map's 1 mm voxels) gets fewer: one voxel's coverage hardly matters there, and its voxels are many
+    inplane = int(np.clip(np.ceil(max(spacing[0], spacing[1]) / 0.5), 1, 4))
+    across = int(np.clip(np.ceil(through / 1.25), 1, 4))
+    return voxelise_labels(meshes, affine, shape, slice_thickness_mm=float(thickness) if thickness else None,
+                           inplane_supersample=inplane, through_plane_samples=across)
 
 
 def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: list[Volume], *,
