@@ -32,7 +32,9 @@ GROUPS = {
 
 
 def rows(path: Path) -> list[str]:
+    """The table's rows (markdown) for one evaluation file, a row per bone group it has."""
     bones = json.loads(path.read_text())["bones"]
+    name = f"{path.parent.name}/{path.name}" if path.parent.name else path.name
     out = []
     for group, member in GROUPS.items():
         sel = {b: r for b, r in bones.items() if member(b) and "dice" in r and "oracle_dice" in r}
@@ -48,13 +50,14 @@ def rows(path: Path) -> list[str]:
             return sum(1 for r in sel.values() if r.get(key) is not None and r[key] >= r["oracle_dice"] - margin)
 
         has_personal = any("personal_dice" in r for r in sel.values())
-        out.append(f"| {path.parent.name}/{path.name} | {group} | {len(sel)} | {med('dice')} | "
+        out.append(f"| {name} | {group} | {len(sel)} | {med('dice')} | "
                    f"{med('personal_dice') if has_personal else '-'} | {med('oracle_dice')} | {meet('dice')} | "
                    f"{meet('personal_dice') if has_personal else '-'} |")
     return out
 
 
 def main(argv: list[str]) -> int:
+    """Print the table for the evaluation files ``argv``; 2 on a missing file or no argument."""
     if not argv:
         print(__doc__)
         return 2

@@ -40,6 +40,7 @@ from __future__ import annotations
 import os
 import pickle
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -54,7 +55,7 @@ from bonecap.skeleton.kinematics import subtree as _subtree
 
 __all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
            "load_seeds", "build_from_mri", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
-           "reframe_subject", "elbow_offsets", "personal_label_meshes", "personal_labels"]
+           "reframe_subject", "elbow_offsets", "personal_label_meshes", "personal_labels", "label_table"]
 
 #: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
 MODEL_TO_LPS = np.array([[0.0, 0.0, -1.0, 0.0],
@@ -635,10 +636,6 @@ def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.n
         One piece, voxel -> LPS.
     ids : dict of str -> int
     """
-    import json
-
-    import yaml
-
     from bonecap.io.imaging import read_volumes
 
     path = Path(path)
@@ -651,6 +648,28 @@ def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.n
     data = np.asarray(v.data)
     if not np.allclose(data, np.round(data)):
         raise DataError("not a label map: it holds non-integer values", path)
+    table, table_path = label_table(path)
+    present = set(np.unique(data.astype(np.int64)).tolist())
+    ids = {str(b): int(i) for b, i in table.items() if int(i) in present and int(i) > 0}
+    if not ids:
+        raise DataError(f"none of the table's labels occurs in the map ({table_path.name})", path)
+    return [(data.astype(np.int32), v.affine)], ids
+
+
+def label_table(path: str | os.PathLike) -> tuple[dict[str, int], Path]:
+    """The label -> bone table beside a label map (see :func:`load_label_map`), and where it was found.
+
+    Returns
+    -------
+    table : dict of str -> int
+        Every entry of the table, whether or not the map holds its label.
+    table_path : Path
+    """
+    import json
+
+    import yaml
+
+    path = Path(path)
     stem = path.name.split(".")[0]
     candidates = [path.with_name(stem + ext) for ext in (".yaml", ".yml", ".json")]
     candidates += [d / f"labels{ext}" for d in (path.parent, path.parent.parent) for ext in (".yaml", ".json")]
@@ -667,11 +686,7 @@ def load_label_map(path: str | os.PathLike) -> tuple[list[tuple[np.ndarray, np.n
     if not isinstance(table, dict) or not all(isinstance(i, int) for i in table.values()):
         raise InputError("the label table must map bone names to integer labels (optionally under 'ids')",
                          table_path)
-    present = set(np.unique(data.astype(np.int64)).tolist())
-    ids = {str(b): int(i) for b, i in table.items() if int(i) in present and int(i) > 0}
-    if not ids:
-        raise DataError(f"none of the table's labels occurs in the map ({table_path.name})", path)
-    return [(data.astype(np.int32), v.affine)], ids
+    return {str(b): int(i) for b, i in table.items()}, table_path
 
 
 def load_seeds(path: str | os.PathLike, *, with_settings: bool = False):
@@ -973,8 +988,6 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         personal.world = "lps"
         warp_report = {"bones": {}, "warning": "no extracted bone passed the plausibility checks: the personal "
                        "skeleton is the template placed on the body (scaled, limbs re-posed), not warped"}
-        import warnings
-
         warnings.warn(warp_report["warning"], stacklevel=2)
     if skull_report is not None and (not targets or not skull_report["used"]):
         # no warp to hand it to, or the fit was out of bounds (identity: the placed skull is kept)
@@ -1078,7 +1091,19 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         # (with --labels the user's own map is the segmentation: nothing of ours to write)
         station_pieces = list(zip(pieces, vols)) if labels is None else []
         t0 = time.perf_counter()
-        personal_ids, personal = personal_label_meshes(subject.skeleton, ids) if pieces else ({}, [])
+        personal_ids, personal = ({}, [])
+        if pieces and labels is None:
+            personal_ids, personal = personal_label_meshes(subject.skeleton, ids)
+        elif pieces:
+            # on the user's map: every bone its table names keeps its label, new ones above every label the
+            # map or the table uses, so that the two maps merge without clashes
+            table = {b: i for b, i in label_table(labels)[0].items() if b in subject.skeleton.bones and i > 0}
+            try:
+                personal_ids, personal = personal_label_meshes(
+                    subject.skeleton, table, taken=max(int(pieces[0][0].max()), max(table.values(), default=0)))
+            except ValueError as exc:
+                warnings.warn(f"{labels}: the personal skeleton is not written on the label map's grid ({exc})",
+                              stacklevel=2)
         qc_data["personal"] = []
         spent = time.perf_counter() - t0
         for n, ((lab, aff), v) in enumerate(station_pieces):
@@ -1092,7 +1117,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
             if personal:
                 t0 = time.perf_counter()
                 rel = f"labels/personal_station_{n + 1}.nii.gz"
-                plab = personal_labels(personal, aff, lab.shape, v)      # uint16: any id a label table uses
+                plab = personal_labels(personal, aff, lab.shape, v)      # uint16 (ids checked 1..65535)
                 write_nifti(Volume(plab, aff), folder / rel)
                 stations[-1]["personal_labels"] = rel
                 qc_data["personal"].append(plab)     # drawn over the rules' contours
@@ -1112,6 +1137,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         if personal:
             # part of the build's time (the speed target counts it; the QC pictures it does not)
             timings["personal labels"] = round(spent, 2)
+            report["seconds"] = round(report["seconds"] + spent, 2)
             doc["personal_ids"] = personal_ids
         (folder / "stations.json").write_text(json.dumps(doc, indent=1))
         qc(folder)
@@ -1119,25 +1145,45 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     return subject, report, qc_and_meshes
 
 
-def personal_label_meshes(skeleton: Skeleton, ids: dict[str, int]) -> tuple[dict[str, int], list[tuple[Mesh, int]]]:
+def personal_label_meshes(skeleton: Skeleton, ids: dict[str, int], *, taken: int = 0
+                          ) -> tuple[dict[str, int], list[tuple[Mesh, int]]]:
     """The personal skeleton's bones as ``(mesh in world, label id)`` for :func:`personal_labels`.
 
-    The slice rules' ids are kept (a bone is one id in both label maps); bones
-    they do not segment (ribs, hands, feet, the skull) get the next free ids.
+    Parameters
+    ----------
+    skeleton : Skeleton
+    ids : dict of str -> int
+        Ids to keep: the slice rules' (a bone is one id in both label maps),
+        or a user's label table.
+    taken : int
+        Ids up to this one are in use besides ``ids`` (a user's map may hold
+        labels its table does not name: organs, for one).
 
     Returns
     -------
     ids : dict of str -> int
-        Every bone with a mesh (and the rules' ids), ``personal_ids`` in ``stations.json``.
+        ``ids`` and every bone with a mesh, the bones ``ids`` lacks (ribs,
+        hands, feet, the skull for the rules) numbered on from the largest id
+        in use; ``personal_ids`` in ``stations.json``.
     meshes : list of (Mesh, int)
+        Each bone's mesh in the skeleton's world and its id.
+
+    Raises
+    ------
+    ValueError
+        An id outside 1..65535 (a label map's voxels are 16-bit here).
     """
     out = dict(ids)
     meshes = []
+    top = max(max(out.values(), default=0), int(taken))
     for name in skeleton.names:
         if skeleton.bones[name].mesh is None:
             continue
         if name not in out:
-            out[name] = max(out.values(), default=0) + 1
+            top += 1
+            out[name] = top
+        if not 1 <= out[name] <= 65535:
+            raise ValueError(f"label id {out[name]} of {name} is outside 1..65535")
         meshes.append((skeleton.world_mesh(name), out[name]))
     return out, meshes
 
@@ -1153,13 +1199,14 @@ def personal_labels(meshes: list[tuple[Mesh, int]], affine: np.ndarray, shape, v
     the template warped onto what the rules did find and carried from its
     neighbours where they found nothing, covers every bone whole: a
     model-based segmentation [1]_. Voxelised on a station's acquisition grid
-    (as registered: ``affine`` is voxel -> the subject's world) with the same
-    sub-voxel sampling as a phantom's oracle on such grids
-    (:func:`bonecap.phantom.render.voxelise_labels`: a voxel takes a bone
-    covering at least half of it over the slice's thickness; fewer samples on
-    grids finer than 2 mm x 5 mm), it opens over the images in 3D Slicer or
-    ITK-SNAP beside the rules' own labels and is scored like them (``bonecap
-    evaluate subject``'s ``personal_dice``).
+    (as registered: ``affine`` is voxel -> the subject's world) by
+    :func:`bonecap.phantom.render.voxelise_labels` (a voxel takes a bone
+    covering at least half of it over the slice's thickness; samples about
+    0.5 mm apart in plane and 1.25 mm through the slice, at most 4 x 4: the
+    default phantom's oracle's sampling on its 1.8 mm x 5 mm stations, fewer
+    on finer grids), it opens over the images in 3D Slicer or ITK-SNAP
+    beside the rules' own labels. ``bonecap evaluate subject`` scores it on
+    the bones the rules segment (``personal_dice``).
 
     Parameters
     ----------

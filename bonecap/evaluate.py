@@ -179,7 +179,7 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
     reference, voxel by voxel, over all stations. Where build-subject wrote the
     personal skeleton's label maps beside ours (``personal_labels``, see
     :func:`bonecap.build_mri.personal_labels`), they are scored the same way
-    (``personal_dice``).
+    (``personal_dice``), on the same bones: those the rules segment.
     """
     import json
 
@@ -222,10 +222,14 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
             continue
         pers = None
         if st.get("personal_labels") and ids_personal:
-            pers = np.asarray(read_nifti(subject_dir / st["personal_labels"]).data).astype(np.int32)
-            if pers.shape != lab.shape:
-                raise DataError(f"personal labels of station {st.get('index')} are {pers.shape}, "
-                                f"its labels {lab.shape}", subject_dir / st["personal_labels"])
+            pv = read_nifti(subject_dir / st["personal_labels"])
+            pers = np.asarray(pv.data).astype(np.int32)
+            # scored voxel for voxel with the station's labels: the map must lie on that grid
+            if pers.shape != lab.shape or not np.allclose(pv.affine, np.asarray(st["registered_affine"], float),
+                                                          atol=1e-3):
+                raise DataError(f"the personal labels of station {st.get('index')} do not lie on its grid "
+                                f"(shape {pers.shape} against {lab.shape}, or another affine)",
+                                subject_dir / st["personal_labels"])
             any_personal = True
         # station voxel -> nominal LPS -> true LPS -> merged voxel, slice by slice to bound memory
         M = m_inv @ to_true @ A
@@ -269,7 +273,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     -------
     dict
         ``bones``: per bone ``dice``, ``oracle_dice``, ``personal_dice`` (the personal skeleton's label
-        maps, where build-subject wrote them), ``extracted_surface_mean_mm``/``_p95_mm``,
+        maps where build-subject wrote them, on the bones the rules segment), ``extracted_surface_mean_mm``/``_p95_mm``,
         ``personal_surface_mean_mm``/``_p95_mm``, ``affine_only_surface_mean_mm``;
         ``markers``: per marker ``marker_binding_mm``; ``capsules``: centre errors;
         ``summary``: medians.

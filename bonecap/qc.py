@@ -2,7 +2,9 @@
 
 - ``qc/contours_<station>.png``: a mosaic of slices of each station with the
   skin (cyan) and every bone label's contour (one colour per bone) drawn over
-  the image — the first thing to look at when a bone comes out wrong.
+  the image — the first thing to look at when a bone comes out wrong — and
+  the personal skeleton's outline on the same slices (yellow dashes), where
+  the warp put each bone against what the slice rules found.
 - ``qc/personal_skeleton_front.png`` / ``_side.png``: the personal skeleton.
 - ``qc/warp_residuals.png``: per bone, the warp's residual at its feature
   points and the extracted-vs-personal fit.
