@@ -1090,22 +1090,6 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         stations = []
         # (with --labels the user's own map is the segmentation: nothing of ours to write)
         station_pieces = list(zip(pieces, vols)) if labels is None else []
-        t0 = time.perf_counter()
-        personal_ids, personal = ({}, [])
-        if pieces and labels is None:
-            personal_ids, personal = personal_label_meshes(subject.skeleton, ids)
-        elif pieces:
-            # on the user's map: every bone its table names keeps its label, new ones above every label the
-            # map or the table uses, so that the two maps merge without clashes
-            table = {b: i for b, i in label_table(labels)[0].items() if b in subject.skeleton.bones and i > 0}
-            try:
-                personal_ids, personal = personal_label_meshes(
-                    subject.skeleton, table, taken=max(int(pieces[0][0].max()), max(table.values(), default=0)))
-            except ValueError as exc:
-                warnings.warn(f"{labels}: the personal skeleton is not written on the label map's grid ({exc})",
-                              stacklevel=2)
-        qc_data["personal"] = []
-        spent = time.perf_counter() - t0
         for n, ((lab, aff), v) in enumerate(station_pieces):
             rel = f"labels/station_{n + 1}.nii.gz"
             (folder / "labels").mkdir(parents=True, exist_ok=True)
@@ -1114,35 +1098,53 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
             stations.append({"index": n + 1, "labels": rel, "source": str(Path(files[0]).parent) if files else "",
                              "nominal_affine": nominal_affines[n].tolist(), "registered_affine": aff.tolist(),
                              "shape": list(lab.shape)})
-            if personal:
-                t0 = time.perf_counter()
-                rel = f"labels/personal_station_{n + 1}.nii.gz"
-                plab = personal_labels(personal, aff, lab.shape, v)      # uint16 (ids checked 1..65535)
-                write_nifti(Volume(plab, aff), folder / rel)
-                stations[-1]["personal_labels"] = rel
-                qc_data["personal"].append(plab)     # drawn over the rules' contours
-                spent += time.perf_counter() - t0
         doc: dict[str, Any] = {"ids": ids, "stations": stations}
-        if personal and labels is not None:
-            # the user's map is the segmentation; the personal skeleton on its grid completes it with the
-            # bones it lacks (ribs, hands, feet, the skull) and shows where the warp left the labels
-            t0 = time.perf_counter()
-            lab, aff = pieces[0]
-            rel = "labels/personal_labelmap.nii.gz"
-            (folder / "labels").mkdir(parents=True, exist_ok=True)
-            write_nifti(Volume(personal_labels(personal, aff, lab.shape), aff), folder / rel)
-            doc["personal_on_label_map"] = {"labels": rel, "label_map": str(labels), "affine": aff.tolist(),
-                                            "shape": list(lab.shape)}
-            spent += time.perf_counter() - t0
+        # the personal skeleton on the same grids; with --labels on the user's map's, which it completes with
+        # the bones the map lacks (ribs, hands, feet, the skull) and shows where the warp left its labels
+        t0 = time.perf_counter()
+        personal_ids, personal = _personal_ids(subject.skeleton, ids, labels, pieces)
+        qc_data["personal"] = []
         if personal:
+            for st, ((lab, aff), v) in zip(stations, station_pieces):
+                st["personal_labels"] = f"labels/personal_station_{st['index']}.nii.gz"
+                plab = personal_labels(personal, aff, lab.shape, v)      # uint16 (ids checked 1..65535)
+                write_nifti(Volume(plab, aff), folder / st["personal_labels"])
+                qc_data["personal"].append(plab)     # drawn over the rules' contours
+            if labels is not None:
+                lab, aff = pieces[0]
+                rel = "labels/personal_labelmap.nii.gz"
+                (folder / "labels").mkdir(parents=True, exist_ok=True)
+                write_nifti(Volume(personal_labels(personal, aff, lab.shape), aff), folder / rel)
+                doc["personal_on_label_map"] = {"labels": rel, "label_map": str(labels), "affine": aff.tolist(),
+                                                "shape": list(lab.shape)}
             # part of the build's time (the speed target counts it; the QC pictures it does not)
-            timings["personal labels"] = round(spent, 2)
+            spent = round(time.perf_counter() - t0, 2)
+            timings["personal labels"] = spent
             report["seconds"] = round(report["seconds"] + spent, 2)
             doc["personal_ids"] = personal_ids
         (folder / "stations.json").write_text(json.dumps(doc, indent=1))
         qc(folder)
 
     return subject, report, qc_and_meshes
+
+
+def _personal_ids(skeleton: Skeleton, ids: dict[str, int], labels, pieces) -> tuple[dict[str, int], list]:
+    """:func:`personal_label_meshes` for the build: on the stations with the rules' ids; on a user's map
+    (``labels``) with its table's, every bone it names keeping its label and new ones above every label
+    the map or the table uses, so that the two maps merge without clashes (ids beyond 16 bits: no map,
+    said)."""
+    if not pieces:
+        return {}, []
+    if labels is None:
+        return personal_label_meshes(skeleton, ids)
+    table = {b: i for b, i in label_table(labels)[0].items() if b in skeleton.bones and i > 0}
+    try:
+        return personal_label_meshes(skeleton, table,
+                                     taken=max(int(pieces[0][0].max()), max(table.values(), default=0)))
+    except ValueError as exc:
+        warnings.warn(f"{labels}: the personal skeleton is not written on the label map's grid ({exc})",
+                      stacklevel=3)
+        return {}, []
 
 
 def personal_label_meshes(skeleton: Skeleton, ids: dict[str, int], *, taken: int = 0
