@@ -525,6 +525,12 @@ FOLLOWED_ENDS = ("tibia", "fibula")
 #: femoral head in the acetabulum, the humeral head on the glenoid.
 FOLLOWED_HEADS = ("femur", "humerus")
 
+#: The long bones whose extraction, end to end, is a lower bound on their length: the warp stretches a
+#: template that falls short of it along the axis (:func:`bonecap.skeleton.warp.cover_extent`). The
+#: fibula's ends lie free of other long bones' lines; a radius's or ulna's search runs on into the carpals
+#: (9-28 mm past the bone on phantoms), a femoral head's into the pelvis, so theirs are no bound.
+COVERED_EXTENTS = ("fibula",)
+
 
 def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, ...] = SEGMENTED_BONES,
                margin_mm: float = 20.0, followed: dict[str, float] | None = None,
@@ -978,7 +984,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
                                               max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed,
-                                              unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None)
+                                              unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None,
+                                              cover=[n for n in targets if n[:-2] in COVERED_EXTENTS])
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly

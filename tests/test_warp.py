@@ -617,3 +617,91 @@ def test_two_close_joints_move_a_carried_bone_without_turning_it():
     pinned = _carry(M, A, B, min_baseline_mm=50.0, pin=np.array([False, True]))
     np.testing.assert_allclose(pinned[:3, :3], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(pinned[:3, :3] @ A[1] + pinned[:3, 3], B[1], atol=1e-9)
+
+
+def _tapered_rod(length: float, radius: float = 6.0, taper: float = 30.0) -> trimesh.Trimesh:
+    """A thin long bone of revolution along z from 0 (its distal tip) to ``length``: a shaft of ``radius``
+    narrowing to a point over its last ``taper`` mm at z = 0 (a fibula's malleolus), a rounded top."""
+    z = np.linspace(0.0, length, 121)
+    r = radius * np.sqrt(np.clip(z / taper, 0, 1)) * np.sqrt(np.clip(1 - ((z - (length - 8.0)).clip(0) / 8.0) ** 2,
+                                                                    0, 1))
+    prof = np.column_stack([r, z])
+    prof[0, 0] = prof[-1, 0] = 0.0
+    return trimesh.creation.revolve(prof, sections=32)
+
+
+def test_cover_extent_stretches_a_short_template_to_its_target():
+    """cover_extent on analytic rods: a template 8 % short of its target at one end is stretched along its
+    axis (anchored at the end that covers) to reach it, the section unchanged; a shortfall within the
+    tolerance, a target shorter than the template, or a bone that is not elongated are left alone; a target
+    far longer than the bone (something else) is refused."""
+    from bonecap.skeleton.warp import cover_extent
+
+    rod = _tapered_rod(300.0)
+    V = np.asarray(rod.vertices)
+    T0 = np.eye(4)
+    T0[:3, :3] = Rotation.from_euler("xz", [20, -35], degrees=True).as_matrix()
+    T0[:3, 3] = [5.0, -40.0, 300.0]
+    longer = (V * [1, 1, 1.08] - [0, 0, 24.0]) @ T0[:3, :3].T + T0[:3, 3]   # 24 mm past the tip, top together
+    T, rep = cover_extent(T0, V, longer)
+    axis = T0[:3, :3] @ [0, 0, 1.0]
+    got = V @ T[:3, :3].T + T[:3, 3]
+    assert rep["stretch"] == pytest.approx(1.08, abs=1e-3) and rep["lo_mm"] == pytest.approx(24.0, abs=0.05)
+    assert rep["hi_mm"] == 0.0
+    assert np.isclose((got @ axis).min(), (longer @ axis).min(), atol=0.05)        # reaches the target's end
+    assert np.isclose((got @ axis).max(), ((V @ T0[:3, :3].T + T0[:3, 3]) @ axis).max(), atol=0.05)  # anchored
+    radial = got - np.outer(got @ axis, axis)
+    radial0 = (V @ T0[:3, :3].T) - np.outer((V @ T0[:3, :3].T) @ axis, axis)
+    assert np.allclose(np.linalg.norm(radial - radial.mean(0), axis=1),
+                       np.linalg.norm(radial0 - radial0.mean(0), axis=1), atol=1e-6)   # the section as it was
+    placed = V @ T0[:3, :3].T + T0[:3, 3]
+    for tgt in (placed - 1.5 * axis, (V * [1, 1, 0.9]) @ T0[:3, :3].T + T0[:3, 3]):
+        T1, rep1 = cover_extent(T0, V, tgt)
+        assert rep1 is None and np.array_equal(T1, T0)
+    blob = trimesh.creation.icosphere(3).vertices * [40, 30, 25]
+    assert cover_extent(np.eye(4), blob, blob * 1.3)[1] is None
+    T2, rep2 = cover_extent(T0, V, (V * [1, 1, 1.5]) @ T0[:3, :3].T + T0[:3, 3])
+    assert "skipped" in rep2 and np.array_equal(T2, T0)
+    with pytest.raises(ValueError, match="target_vertices"):
+        cover_extent(T0, V, np.zeros((3, 2)))
+
+
+def test_a_thin_bone_short_at_a_cut_end_is_covered():
+    """A fibula-like rod 7 % longer than the template's, their tops together; the segmentation's search
+    ended 14 mm above the true tip, and the extraction's last 15 mm slice pitch is declared unseen (a cut).
+    The template's landmark 25 mm above its tip (the lateral malleolus) should follow the subject's.
+    Plain, nothing holds the affine's length at the cut end: it stays short, and the narrow RBF kernels
+    of a thin bone do not reach the landmark. With ``cover`` the affine is first stretched to the
+    extraction's end, which halves the landmark's error (what is left is the part the search never saw)."""
+    import pyvista as pv
+
+    L = 380.0
+    rod = _tapered_rod(L)
+    V, F = np.asarray(rod.vertices), np.asarray(rod.faces)
+    s = 1.07
+    tV = V * [1.0, 1.0, s] - [0, 0, (s - 1.0) * L]          # tops together: the tip 26.6 mm lower
+    lm0 = np.array([6.0 * np.sqrt(25.0 / 30.0), 0.0, 25.0])  # on the surface, 25 mm above the tip
+    lm_true = lm0 * [1, 1, s] - [0, 0, (s - 1.0) * L]
+    tip_true_z = tV[:, 2].min()
+    cut_z = tip_true_z + 14.0
+    poly = pv.PolyData(tV, np.hstack([np.full((len(F), 1), 3), F]).ravel())
+    short = poly.clip_closed_surface(normal=(0, 0, 1.0), origin=(0, 0, cut_z)).triangulate()  # keeps z > cut
+    short = trimesh.Trimesh(np.asarray(short.points), np.asarray(short.faces).reshape(-1, 4)[:, 1:], process=True)
+    assert short.is_watertight and np.isclose(short.vertices[:, 2].min(), cut_z)
+    target = Mesh(np.asarray(short.vertices), np.asarray(short.faces), "lps")
+    sk = Skeleton({"fibula": Bone("fibula", None, Mesh(V, F, "fibula"), np.eye(4),
+                                  joint_centres={"top": [0, 0, L]}, landmarks={"malleolus": lm0})}, world="model")
+    unseen = {"fibula": [((0, 0, -1.0), -(cut_z + 15.0))]}     # z < cut + 15: the extraction's last pitch
+    err, reps = {}, {}
+    for cover in ((), ("fibula",)):
+        personal, rep = warp_skeleton(sk, {"fibula": target}, init=np.eye(4), start_from="placed", unseen=unseen,
+                                      cover=cover)
+        err[bool(cover)] = np.linalg.norm(personal.bones["fibula"].landmark_in_world("malleolus") - lm_true)
+        reps[bool(cover)] = rep
+    assert "covered" in reps[True]["bones"]["fibula"] and "covered" not in reps[False]["bones"]["fibula"]
+    assert reps[True]["bones"]["fibula"]["covered"]["lo_mm"] > 8.0
+    # the affine-only baseline stays the plain affine ICP
+    assert np.allclose(reps[True]["transforms"]["fibula"], reps[False]["transforms"]["fibula"])
+    assert err[False] > 20.0, err                                    # 24.6 mm: up the shaft
+    # the extraction itself ends 14 mm short of the tip: covered, the landmark is about that far off (13.3)
+    assert err[True] < 0.6 * err[False] and err[True] < 15.0, err

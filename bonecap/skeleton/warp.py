@@ -57,7 +57,7 @@ from bonecap.skeleton.isb import refresh_isb_frames
 from bonecap.skeleton.kinematics import joint_groups
 
 __all__ = ["rigid_icp", "affine_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
-           "warp_skeleton"]
+           "cover_extent", "warp_skeleton"]
 
 
 # --------------------------------------------------------------------------- #
@@ -643,13 +643,92 @@ def _default_widths(extent: float, spacing: float) -> list[float]:
     return [min(0.3 * extent, 4.0 * spacing), min(0.15 * extent, 2.5 * spacing), min(0.08 * extent, 1.5 * spacing)]
 
 
+def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarray, *, tol_mm: float = 2.0,
+                 max_stretch: float = 1.12) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """Stretch an elongated bone's affine along its long axis until it covers its target's extent.
+
+    A long bone's shaft is a cylinder: along its own axis an ICP is held only
+    by the bone's ends. Where an end of the extraction is a cut (the search
+    ended before the bone did: :func:`bonecap.build_mri.unseen_ends`), the
+    pairs there do not count, so nothing holds the template's length at that
+    end, and a template shorter than the subject's bone stays short: the
+    affine leaves it ending before the extraction does, and the narrow RBF
+    kernels of a thin bone then pull out its tip alone. On phantoms the
+    fibula's lateral malleolus came out 17-21 mm up its shaft (its head, 21 mm
+    down), and with it the ISB origin of the tibia, the fibula and the foot
+    (the malleoli's midpoint, :mod:`bonecap.skeleton.isb`), 10-12 mm off.
+
+    The extraction is bone wherever it lies, so its extent along the axis is a
+    lower bound on the bone's: the affine is followed by a scaling along the
+    axis (anchored at the end that already covers) so that the template reaches
+    each end of the target it fell short of by more than ``tol_mm``. Only for
+    bones whose extraction does not run on into a neighbour (the caller
+    decides: build-subject gives the fibulae; a radius's or ulna's search runs
+    into the carpals, a femur's head into the pelvis).
+
+    Parameters
+    ----------
+    T : ndarray (4, 4)
+        The affine, template world -> target world.
+    src_world : ndarray (N, 3)
+        The template bone's vertices in template world.
+    target_vertices : ndarray (M, 3)
+        The target's vertices (target world).
+    tol_mm : float
+        Shortfalls up to this are left to the RBF.
+    max_stretch : float
+        A larger stretch is not applied (the target holds something else).
+
+    Returns
+    -------
+    T : ndarray (4, 4)
+        The covering affine (``T`` itself when nothing is to cover).
+    report : dict or None
+        ``{"lo_mm", "hi_mm", "stretch"}``: how far each end moved along the
+        axis, and the scale; ``{"skipped": why}`` when the stretch was refused;
+        None when nothing was short (or the bone is not elongated).
+    """
+    T = np.asarray(T, float)
+    base = _apply(T, _check_points("src_world", src_world))
+    tv = _check_points("target_vertices", target_vertices)
+    c = base.mean(axis=0)
+    _, sv, vt = np.linalg.svd(base - c, full_matrices=False)
+    if sv[0] < 3.0 * sv[1]:          # not a long bone: its ends are not along one axis
+        return T, None
+    u = vt[0]
+    sb = (base - c) @ u
+    # the target's vertices near the bone's axis only (a stray piece beside it says nothing of its length)
+    radial = np.linalg.norm((base - c) - np.outer(sb, u), axis=1).max()
+    tr = tv - c
+    st = tr @ u
+    near = np.linalg.norm(tr - np.outer(st, u), axis=1) <= 2.0 * radial
+    if not near.any():
+        return T, None
+    st = st[near]
+    lo, hi = float(sb.min()), float(sb.max())
+    new_lo = float(st.min()) if lo - st.min() > tol_mm else lo
+    new_hi = float(st.max()) if st.max() - hi > tol_mm else hi
+    if new_lo == lo and new_hi == hi:
+        return T, None
+    a = (new_hi - new_lo) / (hi - lo)
+    if a > max_stretch:
+        return T, {"skipped": f"the target reaches {a:.2f}x the bone's length along its axis"}
+    # p' = p + [(a - 1) s + new_lo - a lo] u, s = (p - c) . u: the ends go to new_lo and new_hi
+    S = np.eye(4)
+    S[:3, :3] += (a - 1.0) * np.outer(u, u)
+    S[:3, 3] = (new_lo - a * lo) * u - (a - 1.0) * u * float(u @ c)
+    return S @ T, {"lo_mm": round(lo - new_lo, 2), "hi_mm": round(new_hi - hi, 2), "stretch": round(a, 4)}
+
+
 def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
               n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
-              n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray) -> dict[str, Any]:
+              n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray,
+              cover: bool = False) -> dict[str, Any]:
     """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
 
     ``check_pts`` (template world) are where the Jacobian must stay positive: the bone's outer and
-    inner surface vertices."""
+    inner surface vertices. ``cover``: stretch the affine along the bone's axis to its target's extent
+    (:func:`cover_extent`); the plain affine ICP stays the affine-only baseline (``T_affine_icp``)."""
     sub = src_world[np.linspace(0, len(src_world) - 1, min(n_icp, len(src_world))).astype(int)]
     # The rigid stage keeps every pair (no trimming): a long bone placed off along its own axis -- a
     # template shorter or longer than the subject's -- is held there only by its ends, and the pairs at
@@ -659,6 +738,9 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     # bone's own extraction (checked, and cut where its search ended): the affine stage trims its outliers.
     T_rigid, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior, trim=1.0)
     T_aff, res_aff = affine_icp(sub, target, T_rigid)
+    T_icp, covered = T_aff, None
+    if cover:
+        T_aff, covered = cover_extent(T_aff, src_world, target.mesh.vertices)
     base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
     extent = float(np.ptp(base.vertices, axis=0).max())
     spacing = float(np.sqrt(base.to_trimesh().area / max(n_features, 8)))
@@ -687,8 +769,8 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
             continue
         warp = cand
         current = Mesh(warp(src_world), faces, "target")
-    return {"T_rigid": T_rigid, "T_affine": T_aff, "warp": warp, "affine_residual_mm": res_aff, "flags": flags,
-            "n_features": 0 if warp is None else len(warp.src)}
+    return {"T_rigid": T_rigid, "T_affine": T_aff, "T_affine_icp": T_icp, "covered": covered, "warp": warp,
+            "affine_residual_mm": res_aff, "flags": flags, "n_features": 0 if warp is None else len(warp.src)}
 
 
 def _implausible(start: np.ndarray, r: dict[str, Any], max_turn_deg: float, max_res_mm: float,
@@ -719,7 +801,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
                   rigid_bodies=None, fixed=None, unseen=None,
-                  refine_chain=None) -> tuple[Skeleton, dict[str, Any]]:
+                  refine_chain=None, cover=()) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -816,6 +898,12 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         :func:`bonecap.segmentation.spine.spine_levels`), or None to keep the
         spread. The first and last joints stay with the anchor and the fixed
         bone. Its reports are the warp report's ``chains``.
+    cover : collection of str
+        Bones whose extraction's extent along their long axis bounds their
+        length from below (its ends do not run on into a neighbour): their
+        affine is stretched along the axis to cover it before the RBF
+        (:func:`cover_extent`; report: ``covered``). build-subject gives the
+        fibulae.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -848,9 +936,10 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         points), ``min_jacobian_det`` (over the bone's vertices),
         ``affine_residual_mean_mm`` (template after the affine ICP to target),
         ``kernel_width_mm``, ``flags``, ``unseen`` (the half-spaces given, as
-        normal and offset); ``transforms``: per bone the affine
-        ``T_affine`` (template world -> target world, the affine-only
-        baseline); ``seconds``.
+        normal and offset), ``covered`` (:func:`cover_extent`'s report, when it
+        stretched); ``transforms``: per bone the affine ICP (template world ->
+        target world, the affine-only baseline; without ``cover``'s stretch);
+        ``seconds``.
 
     References
     ----------
@@ -895,7 +984,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], cuts.get(name, ())), start,
                          n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
-                         check)
+                         check, cover=name in cover)
 
     if start_from == "placed":
         # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
@@ -1155,6 +1244,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 "kernel_width_mm": w.kernel_width_mm if w is not None else None,
                 "flags": r["flags"],
             }
+            if r.get("covered"):
+                report_bones[name]["covered"] = r["covered"]
             if cuts.get(name):
                 report_bones[name]["unseen"] = [[*np.round(n, 4).tolist(), round(c, 2)] for n, c in cuts[name]]
         else:
@@ -1175,7 +1266,9 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     for name, change in reframed.items():
         report_bones[name]["frame_rebuilt"] = {k: round(v, 3) for k, v in change.items()}
     report = {"bones": report_bones,
-              "transforms": {n: bone_affine(n).tolist() for n in template.bones},
+              # the affine-only baseline: a bone's plain affine ICP (before cover_extent's stretch)
+              "transforms": {n: (results[n].get("T_affine_icp", results[n]["T_affine"]) if n in results
+                                 else bone_affine(n)).tolist() for n in template.bones},
               "init": init.tolist(), "seconds": time.perf_counter() - t_start}
     if chain_reports:
         report["chains"] = chain_reports
