@@ -1496,8 +1496,8 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     :func:`_station_capsules` of ``vols`` started earlier (else the stations are searched here)."""
     from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, STATIC_ROBUST_ROUNDS,
                                        bind_static, capsule_static_disagreement, functional_twists,
-                                       joint_consistent, neutral_twist, pose_to_static, static_markers,
-                                       turn_femurs)
+                                       joint_consistent, neutral_twist, pose_to_static, pronate_on_ulna,
+                                       static_markers, turn_femurs)
     from bonecap.markers import place_markers
     from bonecap.motion.lsq import plan_segments
     from bonecap.subject import MarkerBinding
@@ -1563,6 +1563,10 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
         def chain(solved):
             if guessed:
                 solved = neutral_twist(sk, solved, tuple(guessed))
+            # each radius turned on its ulna about the forearm's axis to its markers (its own twist, hung
+            # on a dorsal marker over soft tissue, was 2-9 deg off on phantoms; the hand's follows it)
+            solved, turns = pronate_on_ulna(sk, solved, bones, local, lab)
+            report["static_radius_turn_deg"] = {k: round(v, 2) for k, v in turns.items()}
             # the hand's twist is the radius's (the wrist turns no way about its long axis), and the foot's
             # roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
             solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)

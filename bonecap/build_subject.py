@@ -273,6 +273,146 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     return out
 
 
+#: The forearm's rotation axis, from the radial head's centre to the ulnar head's fovea (the landmarks
+#: of :func:`pronate_on_ulna`; Hollister et al. 1994).
+PRONATION_AXIS = (("radius", "radial_head_centre"), ("ulna", "ulnar_head_fovea"))
+
+
+def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[str], marker_local: np.ndarray,
+                    static_lab: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """Each radius of a static pose re-placed on its solved ulna, turned about the forearm's axis to its markers.
+
+    In the joint-coupled solve the radius hangs on a ball joint at its head
+    with two markers (the radial styloid and a dorsal forearm marker over
+    soft tissue), so its twist about its long axis rests on where the
+    forearm marker was placed on the skin: on phantoms it came out 2-9 deg
+    off, and the hand, which takes its twist from the radius (the wrist has
+    no axial rotation), with it. But the radius does not move freely about
+    its head: relative to the ulna it only turns about the forearm's
+    rotation axis, from the radial head's centre to the ulnar head's fovea
+    (pronation-supination; Hollister et al. 1994). Here each radius keeps
+    its relative pose to the ulna from the skeleton (the MRI's), and is
+    turned about that axis, carried with the solved ulna, by the angle that
+    fits its markers best in the least-squares sense (closed form: for
+    points turned about one axis the optimum angle is
+    ``atan2(sum w . (a x v), sum w_perp . v_perp)``). The radial styloid
+    marker, 20-25 mm from the axis at the wrist, then decides the angle; the
+    ulna, with the olecranon and ulnar styloid markers and the elbow, is the
+    better-held bone of the two. The hand (the radius's descendants, one
+    segment in the solve) is carried to the re-placed wrist and turned about
+    it onto its own markers (its direction had been fitted about the old
+    wrist: left as it was, the finger markers were bound 3-9 mm farther off
+    on phantoms); its twist is the radius's afterwards (:func:`neutral_twist`).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The subject's skeleton (its ``bone_to_world`` the reference pose: the
+        MRI's, where the radius's pose relative to the ulna is measured).
+    poses : ndarray (B, 4, 4)
+        ``bone_to_lab`` of the static, in the order of ``skeleton.names``.
+    marker_bones : list of str
+        Each static marker's bone.
+    marker_local : ndarray (M, 3)
+        The markers in their bones' frames (mm).
+    static_lab : ndarray (M, 3)
+        The markers measured in the static, lab frame (mm; NaN where missing).
+
+    Returns
+    -------
+    poses : ndarray (B, 4, 4)
+        A copy with each radius and its hand re-placed (the others as they were).
+    turns : dict of str -> float
+        Per radius re-placed, its turn from the solved pose (deg, about the
+        forearm axis as the solve had it).
+
+    References
+    ----------
+    Hollister A, Giurintano DJ, Bertram A, et al. The axis of rotation of the
+    forearm. Clin Orthop Relat Res 298:272-276, 1994.
+    """
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, float)
+    marker_local = np.asarray(marker_local, float).reshape(-1, 3)
+    static_lab = np.asarray(static_lab, float).reshape(-1, 3)
+    if len(marker_bones) != len(marker_local) or len(marker_local) != len(static_lab):
+        raise ValueError(f"marker_bones, marker_local and static_lab differ in length: {len(marker_bones)}, "
+                         f"{len(marker_local)}, {len(static_lab)}")
+    if poses.shape != (len(skeleton.names), 4, 4):
+        raise ValueError(f"poses must be ({len(skeleton.names)}, 4, 4), got {poses.shape}")
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    out = poses.copy()
+    turns: dict[str, float] = {}
+    (rb, rl), (ub, ul) = PRONATION_AXIS
+    for suffix in ("_r", "_l", ""):
+        r, u = rb + suffix, ub + suffix
+        if r not in skeleton.bones or u not in skeleton.bones:
+            continue
+        R0, U0 = skeleton.bones[r], skeleton.bones[u]
+        if rl not in R0.landmarks or ul not in U0.landmarks:
+            continue
+        U = poses[idx[u]]
+        sel = [k for k, b in enumerate(marker_bones) if b == r and np.isfinite(static_lab[k]).all()]
+        if not sel or not (np.isfinite(U).all() and np.isfinite(poses[idx[r]]).all()):
+            continue
+        rel = np.linalg.solve(U0.bone_to_world, R0.bone_to_world)       # radius in the ulna's frame (MRI)
+        start = U @ rel                                                  # the radius at that relative pose
+        # the axis in the lab, carried with the solved ulna
+        to_lab = U @ np.linalg.inv(U0.bone_to_world)
+        c = (to_lab @ np.r_[R0.landmark_in_world(rl), 1.0])[:3]
+        a = (to_lab @ np.r_[U0.landmark_in_world(ul), 1.0])[:3] - c
+        if np.linalg.norm(a) < 1e-6:
+            continue
+        a /= np.linalg.norm(a)
+        v = (marker_local[sel] @ start[:3, :3].T + start[:3, 3]) - c
+        w = static_lab[sel] - c
+        v_perp = v - np.outer(v @ a, a)
+        w_perp = w - np.outer(w @ a, a)
+        phi = float(np.arctan2(np.sum(w * np.cross(a, v)), np.sum(w_perp * v_perp)))
+        if not np.isfinite(phi):
+            continue
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.from_rotvec(phi * a).as_matrix()
+        turn[:3, 3] = c - turn[:3, :3] @ c
+        new = turn @ start
+        # the change from the solved radius, as a turn about the axis (its sign along a)
+        d = Rotation.from_matrix(new[:3, :3] @ poses[idx[r]][:3, :3].T).as_rotvec()
+        turns[r] = float(np.degrees(d @ a))
+        out[idx[r]] = new
+        # the hand hangs on the radius's wrist: carried to the re-placed wrist and turned about it onto
+        # its own markers (its solved direction had been fitted about the old wrist)
+        ride = [n for n in skeleton.names if _descends_from(skeleton, n, r)]
+        if not ride or "wrist" not in R0.joint_centres:
+            continue
+        wrist = np.r_[R0.joint_centres["wrist"], 1.0]
+        w_old, w_new = (poses[idx[r]] @ wrist)[:3], (new @ wrist)[:3]
+        carry = np.eye(4)
+        carry[:3, 3] = w_new - w_old
+        hsel = [k for k, b in enumerate(marker_bones) if b in ride and np.isfinite(static_lab[k]).all()
+                and np.isfinite(poses[idx[b]]).all()]
+        if len(hsel) >= 2:
+            q = np.array([(carry @ poses[idx[marker_bones[k]]] @ np.r_[marker_local[k], 1.0])[:3] for k in hsel])
+            rot, _ = Rotation.align_vectors(static_lab[hsel] - w_new, q - w_new)
+            carry = np.eye(4)
+            carry[:3, :3] = rot.as_matrix()
+            carry[:3, 3] = w_new - rot.as_matrix() @ w_new
+            carry = carry @ np.r_[np.c_[np.eye(3), w_new - w_old], [[0, 0, 0, 1]]]
+        for n in ride:
+            if np.isfinite(poses[idx[n]]).all():
+                out[idx[n]] = carry @ poses[idx[n]]
+    return out, turns
+
+
+def _descends_from(skeleton: Skeleton, name: str, ancestor: str) -> bool:
+    p = skeleton.bones[name].parent
+    while p is not None:
+        if p == ancestor:
+            return True
+        p = skeleton.bones[p].parent
+    return False
+
+
 #: Knee flexion (deg) from which a frame's hip-knee-ankle plane stands for the knee's flexion axis.
 FUNCTIONAL_MIN_FLEXION_DEG = 25.0
 
