@@ -112,6 +112,64 @@ def test_plan_segments_rules():
     assert seg.root == "shank" and seg.joint == "knee" and "foot" in seg.members
 
 
+def spine_skeleton():
+    """sacrum -> l5 -> l4 -> t10 -> t9 -> c7 -> c6 (frames = world at rest, 100 mm apart), ball joints at the
+    discs; a rib rides on t9 (the thorax)."""
+    def T(z):
+        M = np.eye(4)
+        M[2, 3] = z
+        return M
+    chain = [("sacrum", None, 1000, None), ("l5", "sacrum", 1100, "l5_s1"), ("l4", "l5", 1200, "l4_l5"),
+             ("t10", "l4", 1300, "t10_l4"), ("t9", "t10", 1400, "t9_t10"), ("c7", "t9", 1500, "c7_t9"),
+             ("c6", "c7", 1600, "c6_c7")]
+    bones = {}
+    for i, (n, p, z, j) in enumerate(chain):
+        jc = {} if j is None else {j: [0.0, 0.0, -50.0]}
+        if i + 1 < len(chain):
+            jc[chain[i + 1][3]] = [0.0, 0.0, 50.0]
+        bones[n] = Bone(n, p, bone_to_world=T(z), joint_centres=jc)
+    bones["rib9_r"] = Bone("rib9_r", "t9", bone_to_world=T(1400), joint_centres={})
+    return Skeleton(bones, world="model")
+
+
+def test_a_vertebra_with_one_marker_joins_the_trunk_above_it():
+    """Plug-in Gait's T10 is a thorax marker: its vertebra, too weakly held by one marker to be a segment
+    of its own, takes over the thorax segment above it (as a marker-less vertebra does), and the
+    marker-less lumbar vertebrae below carry it down to L5/S1 -- the trunk turns on the pelvis there, as
+    OpenSim's full-body models have it (one lumbar joint). Before, T10 and the lumbar spine rode on the
+    pelvis: a trunk turning 10 deg on the pelvis left them 10 deg off. C7's vertebra (one marker) rides on
+    the thorax and does not take the head's segment above it over. A marker-less or one-marker bone that
+    is not a vertebra keeps the old rule (test_plan_segments_rules)."""
+    skel = spine_skeleton()
+    mb = ["sacrum"] * 4 + ["t10"] + ["t9"] * 3 + ["c7"] + ["c6"] * 3
+    local = np.array([[80, 60, 0], [80, -60, 0], [-60, 50, 20], [-60, -50, 20], [-70, 0, 0],
+                      [-70, 0, 20], [60, 50, 0], [60, -50, 10], [-60, 0, 0],
+                      [80, 70, 40], [80, -70, 40], [-90, 0, 60]], float)
+    plan = plan_segments(skel, mb)
+    assert plan.roots() == ["sacrum", "l5", "c6"]
+    seg = plan.segments[plan.segment_of["t10"]]
+    assert seg.root == "l5" and seg.joint == "l5_s1"
+    assert set(seg.members) == {"l5", "l4", "t10", "t9", "c7", "rib9_r"}
+    assert plan.segments[plan.segment_of["c6"]].joint == "c6_c7"
+    # without the rib cage on t9 (not the thorax) T10 keeps riding on the pelvis
+    bare = Skeleton({n: b for n, b in skel.bones.items() if n != "rib9_r"}, world="model")
+    assert plan_segments(bare, mb).segment_of["t10"] == 0
+    # the trunk turned on the pelvis about L5/S1 (rigid above it), the pelvis moving too
+    F = 40
+    t = np.linspace(0, 1, F)
+    root = np.tile(np.eye(4), (F, 1, 1))
+    root[:, :3, :3] = Rotation.from_rotvec(np.c_[0.05 * t, 0.1 * np.sin(2 * np.pi * t), 0.3 * t]).as_matrix()
+    root[:, :3, 3] = np.c_[500 * t, 10 * t, np.zeros(F)]
+    trunk = np.c_[0.1 * np.sin(2 * np.pi * t), 0.05 * np.cos(2 * np.pi * t), 0.17 * np.sin(4 * np.pi * t)]
+    T = pose_skeleton(skel, root, {"l5": trunk})
+    Tb = T[:, [skel.names.index(b) for b in mb]]
+    markers = np.einsum("fmij,mj->fmi", Tb[..., :3, :3], local) + Tb[..., :3, 3]
+    mo = solve_lsq(skel, mb, local, markers, rate_hz=100.0)
+    assert np.nanmax(rotation_angle_deg(mo.transforms, T)) < 1e-5
+    old = np.degrees(Rotation.from_rotvec(trunk).magnitude()).max()
+    assert old > 9.0                                  # what riding on the pelvis would have missed
+
+
 def test_coupled_solver_exact_on_noise_free_ball_joints():
     skel, T, markers, _ = truth_motion()
     mo = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers, rate_hz=100.0)

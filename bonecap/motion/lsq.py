@@ -88,6 +88,7 @@ References
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -234,6 +235,12 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
     return a / n if n > 0 else None
 
 
+def _is_vertebra(name: str) -> bool:
+    """A vertebra's name: the embedded skeleton's ``c1``-``c7``, ``t1``-``t12``, ``l1``-``l5``, or an OpenSim
+    lumbar model's ``lumbar1``-``lumbar5`` / ``thoracic1``-``thoracic12``."""
+    return re.fullmatch(r"[ctl]\d{1,2}|(?:cervical|thoracic|lumbar)\d{1,2}", name) is not None
+
+
 def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                   segments: Mapping[str, str] | None = None, joints: Mapping[str, str] | None = None,
                   own_pose: Sequence[str] = ()) -> SegmentPlan:
@@ -248,7 +255,17 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     markers whose children are segment roots takes them over (a talus carries
     calcaneus and foot, carpals carry the rays, marker-less vertebrae carry
     the spine above them), because a joint between marker-less bones cannot
-    be observed; it then is a root if the pooled markers determine it. Any
+    be observed; it then is a root if the pooled markers determine it. So
+    does a vertebra whose markers alone cannot hold it, when its child root
+    is the thorax (a vertebra the rib cage rides on): Plug-in Gait's T10 is a
+    thorax marker (the thorax segment is C7, T10, CLAV, STRN), so T10's
+    vertebra joins the thorax above it, and the marker-less lumbar vertebrae
+    below carry the trunk down to L5/S1, where OpenSim's full-body models turn
+    it on the pelvis (one lumbar joint). Left on the pelvis, the lumbar spine
+    and T10 turned with it: a phantom's trunk turning on the pelvis in a walk
+    left them 4-8 deg off, and T10 tilted a real subject's static pelvis 13
+    deg from Plug-in Gait's. C7's vertebra does not take the neck and head
+    over (they keep their own segment on the thorax). Any
     other bone rides on its parent at the reference relative pose (a patella,
     a fibula, ribs).
 
@@ -307,6 +324,18 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
         pending = dict(own)
         is_root: dict[str, bool] = {}
 
+        def _holds_ribs(root):
+            """Whether the rib cage rides on ``root``'s segment (the thorax, not the neck and head)."""
+            stack = list(kids[root])
+            while stack:
+                n = stack.pop()
+                if is_root.get(n):
+                    continue
+                if n.startswith("rib"):
+                    return True
+                stack.extend(kids[n])
+            return False
+
         def determined(n_markers, bone):
             if bone in hinged:
                 return n_markers >= 1
@@ -319,7 +348,8 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                 is_root[b] = True
             elif determined(pend, b):
                 is_root[b] = True
-            elif own[b] == 0 and kid_roots:
+            elif kid_roots and (own[b] == 0 or (_is_vertebra(b) and all(_is_vertebra(c) and _holds_ribs(c)
+                                                                          for c in kid_roots))):
                 movable = [c for c in kid_roots if c not in own_pose]
                 pend += sum(pending[c] for c in movable)
                 for c in movable:
