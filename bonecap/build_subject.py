@@ -333,6 +333,8 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
     """
     from scipy.spatial.transform import Rotation
 
+    from bonecap.skeleton.kinematics import subtree
+
     poses = np.asarray(poses, float)
     marker_local = np.asarray(marker_local, float).reshape(-1, 3)
     static_lab = np.asarray(static_lab, float).reshape(-1, 3)
@@ -382,7 +384,7 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
         out[idx[r]] = new
         # the hand hangs on the radius's wrist: carried to the re-placed wrist and turned about it onto
         # its own markers (its solved direction had been fitted about the old wrist)
-        ride = [n for n in skeleton.names if _descends_from(skeleton, n, r)]
+        ride = subtree(skeleton, r)[1:]
         if not ride or "wrist" not in R0.joint_centres:
             continue
         wrist = np.r_[R0.joint_centres["wrist"], 1.0]
@@ -402,15 +404,6 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
             if np.isfinite(poses[idx[n]]).all():
                 out[idx[n]] = carry @ poses[idx[n]]
     return out, turns
-
-
-def _descends_from(skeleton: Skeleton, name: str, ancestor: str) -> bool:
-    p = skeleton.bones[name].parent
-    while p is not None:
-        if p == ancestor:
-            return True
-        p = skeleton.bones[p].parent
-    return False
 
 
 #: Knee flexion (deg) from which a frame's hip-knee-ankle plane stands for the knee's flexion axis.

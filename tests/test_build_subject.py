@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from bonecap.io.mesh import read_mesh
+from bonecap.skeleton.kinematics import subtree
 
 
 @pytest.fixture(scope="module")
@@ -448,7 +449,7 @@ def test_joint_consistent_keeps_the_solved_pronation():
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(np.radians(40.0) * axis).as_matrix()
     T[:3, 3] = head - T[:3, :3] @ head
-    moved = [sk.names.index(n) for n in sk.names if n == "radius_r" or _descends(sk, n, "radius_r")]
+    moved = [sk.names.index(n) for n in subtree(sk, "radius_r")]
     posed = ref.copy()
     posed[moved] = T @ ref[moved]
     out = joint_consistent(sk, posed)
@@ -489,8 +490,8 @@ def test_the_static_radius_turns_on_its_ulna_to_its_markers():
     elbow = uln.bone_to_world[:3, :3] @ uln.joint_centres["elbow"] + uln.bone_to_world[:3, 3]
     c, d = rad.landmark_in_world(rl), uln.landmark_in_world(ul)
     flex = turned(np.eye(4), uln.bone_to_world[:3, 2], 25.0, elbow)          # the forearm at the elbow
-    forearm = [i for n, i in idx.items() if n == "radius_r" or _descends(sk, n, "radius_r")]
-    hand = [i for n, i in idx.items() if _descends(sk, n, "radius_r")]
+    forearm = [idx[n] for n in subtree(sk, "radius_r")]
+    hand = forearm[1:]
     assert len(hand) == 6
     true = ref.copy()
     true[idx["ulna_r"]] = flex @ ref[idx["ulna_r"]]
@@ -525,15 +526,6 @@ def test_the_static_radius_turns_on_its_ulna_to_its_markers():
         pronate_on_ulna(sk, solved, bones[:1], local, lab)
     with pytest.raises(ValueError, match="poses must be"):
         pronate_on_ulna(sk, solved[:3], bones, local, lab)
-
-
-def _descends(sk, name, ancestor):
-    p = sk.bones[name].parent
-    while p is not None:
-        if p == ancestor:
-            return True
-        p = sk.bones[p].parent
-    return False
 
 
 def test_seeds_file_settings(tmp_path):
@@ -697,7 +689,7 @@ def test_capsule_bindings_the_static_refutes_are_flagged_by_segment():
     bad = local(world)
     rms, flagged = capsule_static_disagreement(sk, names, bones, bad, static, posed(bad), capsules)
     assert flagged == ["carpals_r"] and rms["carpals_r"] > 5.0, rms
-    assert {bones[i] for i in hand} <= {b for b in sk.names if b == flagged[0] or _descends(sk, b, flagged[0])}
+    assert {bones[i] for i in hand} <= set(subtree(sk, flagged[0]))
     # markers without capsules are never looked at
     assert capsule_static_disagreement(sk, names, bones, bad, static, posed(bad), set())[1] == []
     with pytest.raises(ValueError, match="tolerance_mm"):
