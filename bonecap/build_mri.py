@@ -2445,10 +2445,9 @@ def _radioulnar_axis(ulna: Bone, ulna_move: np.ndarray) -> tuple[np.ndarray, np.
 def _turn_about(point: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
-    R = np.eye(4)
-    R[:3, :3] = Rotation.from_rotvec(np.radians(deg) * axis).as_matrix()
-    R[:3, 3] = point - R[:3, :3] @ point
-    return R
+    from bonecap.skeleton.kinematics import turn_about
+
+    return turn_about(point, Rotation.from_rotvec(np.radians(deg) * axis).as_matrix())
 
 
 def _marrow_axis(bone: Bone, fallback: np.ndarray, n: int = 24, span=(0.05, 0.7)) -> np.ndarray:

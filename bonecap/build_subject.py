@@ -333,7 +333,7 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
     """
     from scipy.spatial.transform import Rotation
 
-    from bonecap.skeleton.kinematics import subtree
+    from bonecap.skeleton.kinematics import subtree, turn_about
 
     poses = np.asarray(poses, float)
     marker_local = np.asarray(marker_local, float).reshape(-1, 3)
@@ -374,10 +374,7 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
         phi = float(np.arctan2(np.sum(w * np.cross(a, v)), np.sum(w_perp * v_perp)))
         if not np.isfinite(phi):
             continue
-        turn = np.eye(4)
-        turn[:3, :3] = Rotation.from_rotvec(phi * a).as_matrix()
-        turn[:3, 3] = c - turn[:3, :3] @ c
-        new = turn @ start
+        new = turn_about(c, Rotation.from_rotvec(phi * a).as_matrix()) @ start
         # the change from the solved radius, as a turn about the axis (its sign along a)
         d = Rotation.from_matrix(new[:3, :3] @ poses[idx[r]][:3, :3].T).as_rotvec()
         turns[r] = float(np.degrees(d @ a))
@@ -396,10 +393,7 @@ def pronate_on_ulna(skeleton: Skeleton, poses: np.ndarray, marker_bones: list[st
         if len(hsel) >= 2:
             q = np.array([(carry @ poses[idx[marker_bones[k]]] @ np.r_[marker_local[k], 1.0])[:3] for k in hsel])
             rot, _ = Rotation.align_vectors(static_lab[hsel] - w_new, q - w_new)
-            carry = np.eye(4)
-            carry[:3, :3] = rot.as_matrix()
-            carry[:3, 3] = w_new - rot.as_matrix() @ w_new
-            carry = carry @ np.r_[np.c_[np.eye(3), w_new - w_old], [[0, 0, 0, 1]]]
+            carry = turn_about(w_new, rot.as_matrix()) @ carry
         for n in ride:
             if np.isfinite(poses[idx[n]]).all():
                 out[idx[n]] = carry @ poses[idx[n]]

@@ -479,33 +479,24 @@ def test_the_static_radius_turns_on_its_ulna_to_its_markers():
     ref = np.array([sk.bones[n].bone_to_world for n in sk.names])
     idx = {n: i for i, n in enumerate(sk.names)}
 
-    def turned(T, axis, deg, pivot):
-        M = np.eye(4)
-        M[:3, :3] = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis)).as_matrix()
-        M[:3, 3] = pivot - M[:3, :3] @ pivot
-        return M @ T
-
     (rb, rl), (ub, ul) = PRONATION_AXIS
     rad, uln = sk.bones["radius_r"], sk.bones["ulna_r"]
     elbow = uln.bone_to_world[:3, :3] @ uln.joint_centres["elbow"] + uln.bone_to_world[:3, 3]
     c, d = rad.landmark_in_world(rl), uln.landmark_in_world(ul)
-    flex = turned(np.eye(4), uln.bone_to_world[:3, 2], 25.0, elbow)          # the forearm at the elbow
     forearm = [idx[n] for n in subtree(sk, "radius_r")]
     hand = forearm[1:]
     assert len(hand) == 6
-    true = ref.copy()
-    true[idx["ulna_r"]] = flex @ ref[idx["ulna_r"]]
-    true[forearm] = flex @ turned(ref[forearm], d - c, 70.0, c)
+    # pronated about the forearm's axis, then the forearm (ulna, radius, hand) turned at the elbow
+    true = _turned_about(_turned_about(ref, forearm, c, d - c, 70.0), [idx["ulna_r"]] + forearm, elbow,
+                         uln.bone_to_world[:3, 2], 25.0)
     bones = ["radius_r", "radius_r", "ray2_r", "ray2_r", "ray4_r"]
     lm = [rad.landmarks["radial_styloid"], rad.landmarks["shaft_dorsal"], sk.bones["ray2_r"].landmarks["metacarpal_head"],
           sk.bones["ray2_r"].landmarks["dip"], sk.bones["ray4_r"].landmarks["pip"]]
     local = np.array(lm) + [[0.0, 0.0, 8.0], [-14.0, 0, 0], [-9.0, 0, 0], [-7.0, 0, 0], [-7.0, 0, 0]]
     lab = np.array([(true[idx[b]] @ np.r_[p, 1.0])[:3] for b, p in zip(bones, local)])
     # the solve: the radius twisted about its own long axis (head -> styloid) through its head, the hand on it
-    head = (flex @ np.r_[c, 1.0])[:3]
-    sty = (true[idx["radius_r"]] @ np.r_[rad.landmarks["radial_styloid"], 1.0])[:3]
-    solved = true.copy()
-    solved[forearm] = turned(true[forearm], sty - head, 9.0, head)
+    head, sty = ((true[idx["radius_r"]] @ np.r_[rad.landmarks[k], 1.0])[:3] for k in (rl, "radial_styloid"))
+    solved = _turned_about(true, forearm, head, sty - head, 9.0)
 
     def err(P):
         i = idx["radius_r"]

@@ -94,3 +94,18 @@ def test_joint_groups_join_names_with_side_suffixes_at_one_place():
     assert sum(len(g) for g in groups) == 9
     with pytest.raises(ValueError):
         joint_groups(sk, tol_mm=-1.0)
+
+
+def test_turn_about_keeps_its_point_and_turns_the_rest():
+    """turn_about(point, R): the point stays, every other point turns by R about it."""
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.skeleton.kinematics import turn_about
+
+    R = Rotation.from_rotvec([0.3, -0.2, 0.9]).as_matrix()
+    p = np.array([10.0, -20.0, 5.0])
+    T = turn_about(p, R)
+    assert np.allclose(T[:3, :3] @ p + T[:3, 3], p)
+    q = np.array([[1.0, 2.0, 3.0], [-40.0, 7.0, 12.0]])
+    assert np.allclose(q @ T[:3, :3].T + T[:3, 3], (q - p) @ R.T + p)
+    assert np.array_equal(T[3], [0, 0, 0, 1])

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "subtree", "PIVOT_JOINTS", "HINGE_JOINTS"]
+__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "subtree", "turn_about", "PIVOT_JOINTS", "HINGE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
@@ -91,6 +91,17 @@ def joint_groups(skeleton: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str
     for i, e in enumerate(entries):
         groups.setdefault(find(i), []).append(e)
     return list(groups.values())
+
+
+def turn_about(point, R) -> np.ndarray:
+    """The rigid 4x4 that turns by the 3x3 rotation ``R`` about ``point`` (which stays where it is), in
+    whatever frame both are given."""
+    R = np.asarray(R, float)
+    point = np.asarray(point, float)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = point - R @ point
+    return T
 
 
 def subtree(skeleton: Skeleton, root: str) -> list[str]:
