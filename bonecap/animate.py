@@ -335,7 +335,8 @@ def write_outputs(out_dir: Path, stem: str, subject: Subject, trial: Trial, moti
         other[f"{k}_angles"], groups[f"{k}_angles"] = v, "ANGLES"
     copy = Trial(trial.labels, trial.points, trial.rate, trial.first_frame, prefixes=trial.prefixes,
                  other_points=other, other_point_groups=groups, analog_labels=trial.analog_labels,
-                 analogs=trial.analogs, analog_rate=trial.analog_rate, events=trial.events)
+                 analogs=trial.analogs, analog_rate=trial.analog_rate, events=trial.events,
+                 subject_parameters=trial.subject_parameters)
     paths["c3d"] = out_dir / f"{stem}_bonecap.c3d"
     write_c3d(copy, paths["c3d"])
     return {k: str(v) for k, v in paths.items()}

@@ -26,7 +26,8 @@ import numpy as np
 
 from bonecap.errors import DataError, InputError
 from bonecap.io.c3d import read_c3d
-from bonecap.markers import MarkerSet, check_marker_set, load_marker_set, match_labels, place_markers
+from bonecap.markers import (MarkerSet, check_marker_set, joint_width_placement, load_marker_set, match_labels,
+                             place_markers)
 from bonecap.model import Skeleton, Trial
 from bonecap.scaling import (fit_scale_factors, load_scaling_groups, scale_factors_from_pairs, scale_skeleton,
                               similarity_fit)
@@ -105,7 +106,8 @@ STATIC_ROBUST_ROUNDS = 3
 
 
 def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np.ndarray,
-                   static_lab: np.ndarray, *, converge: bool = True, robust_rounds: int = 0) -> np.ndarray:
+                   static_lab: np.ndarray, *, converge: bool = True, robust_rounds: int = 0,
+                   weights: np.ndarray | None = None) -> np.ndarray:
     """Pose every bone to one frame of static markers with the joint-coupled solver, to convergence.
 
     Parameters
@@ -130,6 +132,8 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
         a few millimetres, some by 10-25 (a surface normal at a spinous tip
         that is not the subject's); weighted down, the few do not tilt the
         segment that the others agree on.
+    weights : ndarray (M,), optional
+        Each marker's weight (default 1); the robust rounds multiply theirs into it.
 
     Returns
     -------
@@ -148,7 +152,10 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
     # converged by Gauss-Newton steps from where the sweeps slow down (a static took ~1 400 single-frame
     # fits a round to creep to 1e-3 mm, which left the femora 0.12 deg short of the minimum)
     sweeps = dict(n_sweeps=STATIC_MAX_SWEEPS, tol_mm=STATIC_TOL_MM, newton=True) if converge else {}
-    weights = None
+    given = None if weights is None else np.asarray(weights, float)
+    if given is not None and (given.shape != (len(marker_bones),) or not (given >= 0).all()):
+        raise ValueError(f"weights must be {len(marker_bones)} non-negative numbers, got shape {given.shape}")
+    weights = given
     for _ in range(robust_rounds + 1):
         motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], weights=weights,
                            max_gap_frames=0, **sweeps)
@@ -161,6 +168,8 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
             break
         c = max(2.0 * float(np.median(r[ok])), 2.0)
         weights = np.where(ok, 1.0 / (1.0 + (np.where(ok, r, 0.0) / c) ** 2), 1.0)
+        if given is not None:
+            weights = weights * given
     return T
 
 
@@ -597,6 +606,159 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     return pose_skeleton(skeleton, root_pose, rots, pivots=PIVOT_JOINTS)[0]
 
 
+#: Weight of a joint centre target (:func:`joint_centre_targets`, :func:`converge_limbs`) in the no-MRI
+#: static fit, against 1 for a marker. Measured on the phantoms of seeds 0-3 and the Plug-in Gait subject
+#: of ../shared (docs/benchmarks.md, "No-MRI static (build-subject --static) on phantoms").
+JOINT_TARGET_WEIGHT = 10.0
+
+
+def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], static_lab: np.ndarray,
+                         poses: np.ndarray, placed: dict[str, np.ndarray]
+                         ) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Where the static's lateral joint markers put their joints' centres (Plug-in Gait's rule).
+
+    A marker over the side of a joint (one whose set gives ``width: {parameter,
+    joint}``: Plug-in Gait's KNE and ANK) lies on the joint's axis, its
+    depth from the centre known (the subject's measured width, set by
+    :func:`bonecap.markers.joint_width_placement`, else the template's). The
+    centre is then the measured marker moved in by that depth along the
+    joint's axis -- Plug-in Gait's chord rule (Davis et al. 1991), with the
+    axis taken from ``poses`` instead of the thigh and shank wands: a pose
+    whose long bones carry the reference twist relative to their parents
+    (:func:`neutral_twist`). Left to the markers alone, a converged fit turns
+    a thigh about its long axis until the knee marker's 60-80 mm lever
+    swings the knee centre 40-75 mm behind or beside the truth (the phantoms
+    of seeds 0-3); these targets hold it (:func:`converge_limbs`).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The scaled template (reference pose).
+    marker_set : MarkerSet
+    names : list of str
+        The static's markers.
+    static_lab : ndarray (M, 3)
+        The measured static markers (lab, mm).
+    poses : ndarray (B, 4, 4)
+        A first ``bone_to_lab`` pose of every bone (the axes' directions).
+    placed : dict of str -> ndarray (3,)
+        The markers' places on ``skeleton`` (world, mm), depths included.
+
+    Returns
+    -------
+    bones : list of str
+        The marker's bone for each target.
+    local : ndarray (K, 3)
+        The joint centre in that bone's frame (mm).
+    target : ndarray (K, 3)
+        Where the static puts it (lab, mm).
+
+    References
+    ----------
+    .. [1] Davis RB, Ounpuu S, Tyburski D, Gage JR (1991). A gait analysis data collection and reduction
+           technique. Hum Mov Sci 10(5):575-587.
+    """
+    from bonecap.markers import joint_centre_axis
+
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    bones, local, target = [], [], []
+    for n, p in zip(names, np.asarray(static_lab, float)):
+        m = marker_set.markers.get(n)
+        if m is None or m.width is None or n not in placed or not np.isfinite(p).all():
+            continue
+        T = poses[idx[m.bone]]
+        if not np.isfinite(T).all():
+            continue
+        try:
+            centre, axis = joint_centre_axis(skeleton, m.bone, m.width[1])
+        except ValueError:
+            continue
+        # in the marker's bone frame, so the first pose carries centre and axis with the marker
+        B = skeleton.bones[m.bone].bone_to_world
+        c_loc = B[:3, :3].T @ (centre - B[:3, 3])
+        a_loc = B[:3, :3].T @ axis
+        along = float((B[:3, :3].T @ (np.asarray(placed[n], float) - B[:3, 3]) - c_loc) @ a_loc)
+        if along < 0:
+            a_loc, along = -a_loc, -along
+        bones.append(m.bone)
+        local.append(c_loc)
+        target.append(p - along * (T[:3, :3] @ a_loc))
+    return bones, np.array(local, float).reshape(-1, 3), np.array(target, float).reshape(-1, 3)
+
+
+def converge_limbs(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], marker_bones: list[str],
+                   marker_local: np.ndarray, static_lab: np.ndarray, first: np.ndarray,
+                   placed: dict[str, np.ndarray], *, weight: float = JOINT_TARGET_WEIGHT) -> tuple[np.ndarray, int]:
+    """The limbs whose joint centres the static's lateral markers give, fitted to convergence with them held.
+
+    The no-MRI static is first posed by the six sweeps a trial gets, which
+    stop near the template's reference pose and keep the pelvis, trunk and
+    arms where their markers and that prior agree. The legs they leave
+    where the template stood them. Here the whole skeleton is solved again
+    to convergence (:func:`pose_to_static`) with two kinds of extra targets,
+    each weighted ``weight`` against a marker's 1: the knee and ankle
+    centres of :func:`joint_centre_targets`, and four points of the root
+    bone (the pelvis) at ``first``'s pose, so that the limbs' proximal joints
+    stay where ``first`` has them. Only the limbs are taken from that
+    solve: the subtree of each target's bone, from the highest bone that
+    carries a target. Everything else keeps ``first``.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    marker_set : MarkerSet
+    names, marker_bones : list of str
+        The static's markers and their bones.
+    marker_local : ndarray (M, 3)
+        The markers' places in their bones' frames (the template's, depths included).
+    static_lab : ndarray (M, 3)
+        The measured static markers (lab, mm).
+    first : ndarray (B, 4, 4)
+        The six sweeps' ``bone_to_lab``.
+    placed : dict of str -> ndarray (3,)
+        The markers' places on ``skeleton`` (world, mm).
+    weight : float
+        A target's weight.
+
+    Returns
+    -------
+    poses : ndarray (B, 4, 4)
+        ``first`` with the held limbs replaced.
+    n_targets : int
+        Joint centre targets used (0: ``first`` unchanged, as for a marker
+        set without lateral joint markers, e.g. an OpenSim model's).
+    """
+    from bonecap.skeleton.kinematics import subtree
+
+    if not (np.isfinite(weight) and weight > 0):
+        raise ValueError(f"weight must be a positive number, got {weight!r}")
+    vb, vl, vt = joint_centre_targets(skeleton, marker_set, names, static_lab, neutral_twist(skeleton, first),
+                                      placed)
+    root = skeleton.names[0]
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    R0 = first[idx[root]]
+    if not vb or not np.isfinite(R0).all():
+        return first, 0
+    corners = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 100.0]])
+    held = [b for b in vb if b != root]
+    bones = list(marker_bones) + vb + [root] * len(corners)
+    local = np.vstack([marker_local, vl, corners])
+    lab = np.vstack([static_lab, vt, corners @ R0[:3, :3].T + R0[:3, 3]])
+    weights = np.r_[np.ones(len(marker_bones)), np.full(len(vb) + len(corners), float(weight))]
+    second = pose_to_static(skeleton, bones, local, lab, converge=True, weights=weights)
+    limbs: set[str] = set()
+    for b in held:
+        top = b
+        while skeleton.bones[top].parent in held:
+            top = skeleton.bones[top].parent
+        limbs.update(subtree(skeleton, top))
+    out = np.array(first, dtype=float, copy=True)
+    for n in limbs:
+        if np.isfinite(second[idx[n]]).all():
+            out[idx[n]] = second[idx[n]]
+    return out, len(vb)
+
+
 def bind_static(skeleton: Skeleton, names: list[str], marker_bones: list[str], static_lab: np.ndarray,
                 bone_to_lab: np.ndarray) -> dict[str, MarkerBinding]:
     """Bind measured static markers to their bones (positions in the bone frames)."""
@@ -675,6 +837,15 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
                       iterations: int = 3, static_frames: str | None = None) -> tuple[Subject, dict[str, Any]]:
     """Scale the template to a static trial and bind its markers (no MRI).
 
+    The template's markers are placed by the marker set's manual rules
+    (:func:`bonecap.markers.place_markers`), except where the static trial
+    carries the subject's measured joint widths (Plug-in Gait's
+    ``LKneeWidth``, ``LAnkleWidth``, ``LElbowWidth`` in the C3D's
+    ``PROCESSING`` group, as Nexus writes them): there the lateral knee,
+    ankle and elbow markers are set out to half the width plus a marker
+    radius from the joint centre (:func:`bonecap.markers.joint_width_placement`),
+    as Plug-in Gait places its joint centres.
+
     Parameters
     ----------
     static : path-like
@@ -697,7 +868,9 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
         Skeleton in the template's world frame (``model``), scaled per bone;
         markers bound from the static trial (``source: static``).
     report : dict
-        Scale factors, the static fit's marker residuals (mm), timings.
+        Scale factors, the static fit's marker residuals (mm), the joint widths
+        used (``measured_joint_widths``: per marker the width, the depth it set
+        and how far the marker moved, mm), timings.
     """
     t0 = time.perf_counter()
     template = load_template(generic)
@@ -707,8 +880,17 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     names, lab = static_markers(trial, mset, path=static, frames=parse_frames(static_frames, trial.n_frames))
     bones = [mset.markers[n].bone for n in names]
 
+    params = trial.subject_parameters
+
+    def place(sk: Skeleton) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        # the template's tissue depth, except where the lab measured the joint's width
+        try:
+            return joint_width_placement(mset, sk, place_markers(mset, sk, names), params)
+        except ValueError as exc:
+            raise DataError(f"subject measurements: {exc}", static) from exc
+
     # A global similarity first: the lab's scale and the subject's stature.
-    placed0 = place_markers(mset, template, names)
+    placed0 = place(template)[0]
     s0, _ = similarity_fit(np.array([placed0[n] for n in names]), lab)
     scales = {b: s0 for b in template.names}
     history = []
@@ -722,7 +904,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
         # no table (an OpenSim MarkerSet): fit the factors, pose by pose
         for _ in range(max(1, iterations)):
             sk = scale_skeleton(template, scales)
-            placed = place_markers(mset, sk, names)
+            placed = place(sk)[0]
             local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
             poses = pose_to_static(sk, bones, local, lab, converge=False)
             index = {n: i for i, n in enumerate(sk.names)}
@@ -736,16 +918,18 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
             scales = {b: float(np.clip(scales[b] * ratio[b], 0.75 * s0, 1.3 * s0)) for b in template.names}
             history.append(float(np.max(np.abs(np.log(list(ratio.values()))))))
     sk = scale_skeleton(template, scales)
-    placed = place_markers(mset, sk, names)
+    placed, widths = place(sk)
     local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
-    # Not to convergence: the scaled template's markers sit where the manual puts them, and a full
-    # least-squares fit follows their misplacement into the joints (phantoms of seeds 1-3: median over
-    # bones 4.6 / 9.7 / 7.6 -> 7.6 / 14.6 / 13.3 deg in the trials; the Plug-in Gait subject of
-    # ../shared: its left femur adducted by 34 deg; with the spine's own scaling and the elbow hinge,
-    # 0.83 / 2.05 / 1.54 -> 1.60 / 1.31 / 2.36 deg and that subject's hip flexion RMS 1.6 / 1.3 -> 2.6 / 2.9
-    # against Vicon's). The few sweeps stop near the template's upright reference pose, a prior the fit
-    # lacks otherwise.
-    poses = neutral_twist(sk, pose_to_static(sk, bones, local, lab, converge=False))
+    # The six sweeps a trial gets, which stop near the template's upright reference pose: a converged fit
+    # to the manual's marker places follows their misplacement into the joints (phantoms of seeds 1-3,
+    # median over bones 4.6 / 9.7 / 7.6 -> 7.6 / 14.6 / 13.3 deg; the Plug-in Gait subject of ../shared: its
+    # left femur adducted by 34 deg; docs/benchmarks.md, "The no-MRI path keeps six sweeps"). The six
+    # sweeps leave the legs where the template stood them, though (knee centres 35-46 mm, ankles 42-63 mm
+    # off on the phantoms of seeds 0-3): the legs are then converged with their knee and ankle centres held
+    # where the lateral markers put them (converge_limbs).
+    first = pose_to_static(sk, bones, local, lab, converge=False)
+    poses, n_targets = converge_limbs(sk, mset, names, bones, local, lab, first, placed)
+    poses = neutral_twist(sk, poses)
     poses = neutral_twist(sk, poses, HAND_PREFIXES, HAND_AXES)
     poses = joint_consistent(sk, neutral_twist(sk, poses, FOOT_PREFIXES, FOOT_AXES))
     markers = bind_static(sk, names, bones, lab, poses)
@@ -773,6 +957,8 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
         "scale_change_per_iteration": history,
         "scale_groups": {g: round(f, 4) for g, f in group_factors.items()},
         "placed_vs_measured_mm": {k: round(v, 2) for k, v in resid.items()},
+        "measured_joint_widths": widths,
+        "joint_centre_targets": n_targets,
         "seconds": round(time.perf_counter() - t0, 2),
     }
     return subject, report

@@ -29,7 +29,8 @@ from bonecap.model import Skeleton
 
 __all__ = ["MarkerDef", "MarkerSet", "MARKER_SET_DIR", "available_marker_sets", "load_marker_set",
            "marker_set_from_osim", "check_marker_set", "place_markers", "match_labels",
-           "LIMB_LONG_BONES", "limb_side_directions", "midline_directions", "MIDLINE_TOLERANCE_MM"]
+           "LIMB_LONG_BONES", "limb_side_directions", "midline_directions", "MIDLINE_TOLERANCE_MM",
+           "joint_centre_axis", "subject_parameter", "joint_width_placement", "DEFAULT_MARKER_DIAMETER_MM"]
 
 #: Folder of the marker sets shipped with bonecap (beside the package in the source tree).
 MARKER_SET_DIR = Path(__file__).resolve().parents[1] / "marker_sets"
@@ -65,6 +66,12 @@ class MarkerDef:
         set's ``direction`` words (``lateral``, ``posterior`` ...; lateral and
         medial resolved by the bone's side suffix). ``None``: the surface
         normal rule of :func:`place_markers`.
+    width : tuple of (str, str) or None
+        ``(parameter, joint)`` from the set's ``width: {parameter: LKneeWidth,
+        joint: knee}``: the marker sits on the side of ``joint`` and the
+        subject's measured width of that joint (a trial's
+        ``subject_parameters[parameter]``) sets how far out it is
+        (:func:`joint_width_placement`).
     """
 
     name: str
@@ -78,6 +85,7 @@ class MarkerDef:
     virtual: bool = False
     optional: bool = False
     direction: np.ndarray | None = None
+    width: tuple[str, str] | None = None
 
 
 @dataclass
@@ -156,7 +164,15 @@ def _parse_marker(name: str, spec: Any, path: Path, optional: bool) -> MarkerDef
     location = spec.get("location")
     if location is not None:
         location = np.asarray(location, dtype=float).reshape(3)
+    width = spec.get("width")
+    if width is not None:
+        if not (isinstance(width, dict) and isinstance(width.get("parameter"), str)
+                and isinstance(width.get("joint"), str)):
+            raise FormatError(f"marker {name!r}: 'width' needs {{parameter: NAME, joint: JOINT}}, got {width!r}",
+                              path)
+        width = (width["parameter"], width["joint"])
     return MarkerDef(
+        width=width,
         direction=_parse_direction(spec.get("direction"), str(spec["bone"]), name, path),
         name=str(name), bone=str(spec["bone"]), landmark=spec.get("landmark"),
         offset_mm=float(spec.get("offset_mm", 0.0)), tracks=list(spec.get("tracks", [spec["bone"]])),
@@ -458,6 +474,139 @@ def place_markers(marker_set: MarkerSet, skeleton: Skeleton, names: list[str] | 
         world = local @ bone.bone_to_world[:3, :3].T + bone.bone_to_world[:3, 3]
         out.update({m.name: p for m, p in zip(defs, world)})
     return {n: out[n] for n in names}
+
+
+#: Plug-in Gait's marker diameter (mm) when a trial does not store ``MARKERDIAMETER``: the 14 mm markers
+#: of its manual, which the phantom wears too.
+DEFAULT_MARKER_DIAMETER_MM = 14.0
+
+#: A measured joint width outside this range (mm) is a typing error or another unit, not a knee.
+_WIDTH_RANGE_MM = (20.0, 300.0)
+
+
+def joint_centre_axis(skeleton: Skeleton, bone: str, joint: str) -> tuple[np.ndarray, np.ndarray]:
+    """The centre and unit axis of ``joint`` near ``bone``, in the skeleton's world frame (reference pose).
+
+    A joint's centre is stored on both bones it joins, its axis on the bone
+    that turns about it (the knee's on the tibia): ``bone`` is searched
+    first, then its parent, then its children.
+
+    Raises
+    ------
+    ValueError
+        No bone around ``bone`` has a centre and an axis for ``joint``.
+    """
+    if bone not in skeleton.bones:
+        raise ValueError(f"no bone {bone!r} in the skeleton")
+    parent = skeleton.bones[bone].parent
+    near = [bone] + ([parent] if parent else []) + [n for n in skeleton.names if skeleton.bones[n].parent == bone]
+    centre = axis = None
+    for n in near:
+        b = skeleton.bones[n]
+        if centre is None and joint in b.joint_centres:
+            centre = b.bone_to_world[:3, :3] @ np.asarray(b.joint_centres[joint], float) + b.bone_to_world[:3, 3]
+        if axis is None and joint in b.joint_axes:
+            axis = b.bone_to_world[:3, :3] @ np.asarray(b.joint_axes[joint], float)
+    if centre is None or axis is None or not np.linalg.norm(axis) > 0:
+        raise ValueError(f"no centre and axis of joint {joint!r} on {bone!r}, its parent or its children")
+    return centre, axis / np.linalg.norm(axis)
+
+
+def subject_parameter(parameters: dict[str, float], name: str) -> float | None:
+    """``parameters[name]`` by Plug-in Gait's names: case-insensitive, ``L``/``R`` or ``Left``/``Right``.
+
+    Nexus writes ``LKneeWidth`` into a trial's ``PROCESSING`` group and
+    ``LeftKneeWidth`` into the subject's VSK; both name the same measurement.
+    """
+    up = {str(k).strip().upper(): v for k, v in parameters.items()}
+    key = name.strip().upper()
+    keys = [key]
+    if key.startswith("LEFT") or key.startswith("RIGHT"):
+        keys.append(key[0] + key[4 if key.startswith("LEFT") else 5:])
+    elif key[:1] in ("L", "R"):
+        keys.append(("LEFT" if key[0] == "L" else "RIGHT") + key[1:])
+    for k in keys:
+        if k in up and np.isfinite(up[k]):
+            return float(up[k])
+    return None
+
+
+def joint_width_placement(marker_set: MarkerSet, skeleton: Skeleton, placed: dict[str, np.ndarray],
+                          parameters: dict[str, float]) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+    """Markers over the side of a joint set out at the depth the subject's measured joint width gives.
+
+    A template's tissue depth over the knee or the malleoli is a typical
+    adult's; a subject's is not (the Plug-in Gait subject of ``../shared``,
+    85 kg: knee widths of 139-144 mm, where the template's skin gives about
+    100). Gait labs measure these widths with callipers and store them with
+    the trials (C3D ``PROCESSING``: ``LKneeWidth``, ``LAnkleWidth``,
+    ``LElbowWidth``), and Plug-in Gait puts the joint centre half the width
+    plus a marker radius in from the marker, along the joint's axis (the
+    chord function; Davis et al. 1991). Here a marker whose set gives
+    ``width: {parameter, joint}`` keeps its place around the joint's axis
+    (where the template's landmark is, along and around the axis) and its
+    distance from the joint centre *along* the axis becomes ``width / 2 +
+    marker radius``, the marker diameter from ``MARKERDIAMETER`` or
+    :data:`DEFAULT_MARKER_DIAMETER_MM`. Without the parameter the marker is
+    left where it was.
+
+    Parameters
+    ----------
+    marker_set : MarkerSet
+    skeleton : Skeleton
+        Where the markers were placed (world frame, reference pose).
+    placed : dict of str -> ndarray (3,)
+        Marker centres from :func:`place_markers` (world, mm).
+    parameters : dict of str -> float
+        The trial's ``subject_parameters`` (mm).
+
+    Returns
+    -------
+    placed : dict of str -> ndarray (3,)
+        The same markers, those with a measured width moved along the joint axis.
+    report : dict
+        Per moved marker: ``width_mm``, ``depth_mm`` (marker centre to joint
+        centre along the axis) and ``moved_mm``.
+
+    Raises
+    ------
+    ValueError
+        A width or the marker diameter outside what a joint or a marker can be
+        (the parameter named, with its value).
+
+    References
+    ----------
+    .. [1] Davis RB, Ounpuu S, Tyburski D, Gage JR (1991). A gait analysis data collection and reduction
+           technique. Hum Mov Sci 10(5):575-587.
+    .. [2] Vicon Motion Systems. Plug-in Gait Reference Guide, "Lower body modeling: knee and ankle joint
+           centres".
+    """
+    diameter = subject_parameter(parameters, "MarkerDiameter")
+    if diameter is None:
+        diameter = DEFAULT_MARKER_DIAMETER_MM
+    if not 0 < diameter < 60:
+        raise ValueError(f"marker diameter {diameter} mm (MARKERDIAMETER) is not a marker's")
+    out = dict(placed)
+    report: dict[str, dict] = {}
+    for name, p in placed.items():
+        m = marker_set.markers.get(name)
+        if m is None or m.width is None:
+            continue
+        width = subject_parameter(parameters, m.width[0])
+        if width is None or width == 0:          # Nexus stores 0 for a measurement never taken
+            continue
+        if not _WIDTH_RANGE_MM[0] <= width <= _WIDTH_RANGE_MM[1]:
+            raise ValueError(f"{m.width[0]} = {width:g} mm is not a joint width (expected "
+                             f"{_WIDTH_RANGE_MM[0]:g}-{_WIDTH_RANGE_MM[1]:g} mm)")
+        centre, axis = joint_centre_axis(skeleton, m.bone, m.width[1])
+        along = float((np.asarray(p, float) - centre) @ axis)
+        if along < 0:                           # the axis's sign is the template's; the marker's side wins
+            axis, along = -axis, -along
+        depth = width / 2 + diameter / 2
+        out[name] = np.asarray(p, float) + (depth - along) * axis
+        report[name] = {"width_mm": round(width, 1), "depth_mm": round(depth, 1),
+                        "moved_mm": round(depth - along, 1)}
+    return out, report
 
 
 def match_labels(marker_set: MarkerSet, labels: list[str]) -> dict[str, str]:

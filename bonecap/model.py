@@ -131,6 +131,10 @@ class Trial:
     events : list of dict
         ``{"label", "context", "time"}`` with time in seconds from the
         recording's start, when the file holds events.
+    subject_parameters : dict of str -> float
+        The subject's measurements a lab stores with the trial (C3D
+        ``PROCESSING``: Plug-in Gait's ``LKNEEWIDTH``, ``RANKLEWIDTH``,
+        ``LELBOWWIDTH``, ``MARKERDIAMETER``..., mm), upper-case names.
     units : str
         ``POINT:UNITS`` as stored in the file (positions here are always mm).
     metadata : dict
@@ -149,6 +153,7 @@ class Trial:
     analogs: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     analog_rate: float = 0.0
     events: list[dict[str, Any]] = field(default_factory=list)
+    subject_parameters: dict[str, float] = field(default_factory=dict)
     units: str = "mm"
     metadata: dict[str, Any] = field(default_factory=dict)
 

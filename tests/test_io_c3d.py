@@ -671,3 +671,28 @@ def test_failure_mid_write_keeps_the_old_file(tmp_path, monkeypatch):
         write_c3d(_random_trial(np.random.default_rng(5)), target)
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.c3d"]
+
+
+@pytest.mark.shared
+def test_pycgm_subject_measurements_are_read_and_written_back(shared, tmp_path, monkeypatch):
+    """Nexus keeps the Plug-in Gait measurements in PROCESSING (the pyCGM static: knee widths 144 / 139 mm,
+    as its VSK has them); they read as ``subject_parameters`` and survive a write through both readers."""
+    t = read_c3d(STATIC)
+    assert t.subject_parameters["LKNEEWIDTH"] == 144.0 and t.subject_parameters["RKNEEWIDTH"] == 139.0
+    assert t.subject_parameters["LANKLEWIDTH"] == 85.0 and t.subject_parameters["INTERASISDISTANCE"] == 306.0
+    write_c3d(t, tmp_path / "w.c3d")
+    a = read_c3d(tmp_path / "w.c3d")
+    monkeypatch.setattr(c3dio, "_read_ezc3d", lambda p: (_ for _ in ()).throw(RuntimeError("no")))
+    b = read_c3d(tmp_path / "w.c3d")
+    assert (a.metadata["reader"], b.metadata["reader"]) == ("ezc3d", "c3d")
+    for back in (a, b):
+        assert set(back.subject_parameters) == set(t.subject_parameters)
+        for k, v in t.subject_parameters.items():      # float32 in the file
+            assert back.subject_parameters[k] == pytest.approx(v, rel=1e-6, abs=1e-6), k
+
+
+def test_a_trial_without_measurements_writes_no_processing_group(tmp_path):
+    trial = _random_trial(np.random.default_rng(5))
+    write_c3d(trial, tmp_path / "w.c3d")
+    assert "PROCESSING" not in ezc3d.c3d(str(tmp_path / "w.c3d"))["parameters"]
+    assert read_c3d(tmp_path / "w.c3d").subject_parameters == {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from bonecap.errors import DataError, FormatError, InputError
 from bonecap.markers import (available_marker_sets, check_marker_set, load_marker_set, match_labels,
@@ -243,3 +244,48 @@ def test_direction_words_place_the_marker_that_way(tmp_path):
         ms.write_text("name: t\nmarkers:\n  TOP: {bone: block, landmark: top, offset_mm: 7, " + bad + "}\n")
         with pytest.raises(FormatError, match=msg):
             load_marker_set(ms)
+
+
+def test_a_measured_joint_width_sets_the_markers_depth_along_the_joint_axis(tmp_path):
+    """Plug-in Gait's chord rule: the marker ends ``width / 2 + marker radius`` from the joint centre along
+    the joint axis (whichever sign the template gave the axis), keeps its place around the axis, and stays
+    where it was without the measurement; names match as Nexus (LKneeWidth) or a VSK (LeftKneeWidth) write them."""
+    from bonecap.markers import joint_centre_axis, joint_width_placement, subject_parameter
+
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, [10.0, 400.0, -30.0]
+    thigh = Bone("thigh", bone_to_world=T, joint_centres={"knee": [0.0, -400.0, 0.0]},
+                 landmarks={"lat": [3.0, -398.0, 45.0]})
+    T2 = T.copy()
+    T2[:3, 3] = T[:3, :3] @ [0.0, -400.0, 0.0] + T[:3, 3]
+    shank = Bone("shank", parent="thigh", bone_to_world=T2, joint_centres={"knee": [0.0, 0.0, 0.0]},
+                 joint_axes={"knee": [0.0, 0.0, -1.0]})        # pointing medially: the marker's side wins
+    sk = Skeleton({"thigh": thigh, "shank": shank})
+    ms = tmp_path / "ms.yaml"
+    ms.write_text("name: t\nmarkers:\n  LKNE: {bone: thigh, landmark: lat, offset_mm: 5, direction: [0, 0, 1], "
+                  "width: {parameter: LKneeWidth, joint: knee}}\n  OTHER: {bone: thigh, landmark: lat}\n")
+    mset = load_marker_set(ms)
+    assert mset.markers["LKNE"].width == ("LKneeWidth", "knee")
+    placed = place_markers(mset, sk)
+    centre, axis = joint_centre_axis(sk, "thigh", "knee")
+    assert np.allclose(centre, T[:3, :3] @ [0.0, -400.0, 0.0] + T[:3, 3])
+    assert abs(abs(axis @ (R @ [0, 0, 1.0])) - 1) < 1e-12
+    for params, diameter in (({"LKNEEWIDTH": 130.0}, 14.0), ({"LeftKneeWidth": 130.0, "MARKERDIAMETER": 25.0}, 25.0)):
+        new, report = joint_width_placement(mset, sk, placed, params)
+        local = R.T @ (new["LKNE"] - centre)
+        assert local[2] == pytest.approx(65.0 + diameter / 2)            # along the axis, laterally
+        assert np.allclose(local[:2], (R.T @ (placed["LKNE"] - centre))[:2])     # around the axis: unchanged
+        assert np.array_equal(new["OTHER"], placed["OTHER"])
+        assert report["LKNE"]["depth_mm"] == pytest.approx(65.0 + diameter / 2)
+    same, report = joint_width_placement(mset, sk, placed, {"RKNEEWIDTH": 130.0, "LKNEEWIDTH": 0.0})
+    assert report == {} and all(np.array_equal(same[n], placed[n]) for n in placed)
+    assert subject_parameter({"LEFTKNEEWIDTH": 101.0}, "LKneeWidth") == 101.0
+    assert subject_parameter({"RKNEEWIDTH": 99.0}, "RightKneeWidth") == 99.0
+    with pytest.raises(ValueError, match="LKneeWidth = 1300 mm is not a joint width"):
+        joint_width_placement(mset, sk, placed, {"LKNEEWIDTH": 1300.0})
+    with pytest.raises(ValueError, match="no centre and axis of joint 'ankle'"):
+        joint_centre_axis(sk, "thigh", "ankle")
+    ms.write_text("name: t\nmarkers:\n  LKNE: {bone: thigh, landmark: lat, width: LKneeWidth}\n")
+    with pytest.raises(FormatError, match="'width' needs"):
+        load_marker_set(ms)

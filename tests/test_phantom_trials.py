@@ -613,3 +613,35 @@ def test_bone_placement_matches_place_markers(shared_data):
         assert np.linalg.norm(w - expect) < 1e-6, n
         assert np.linalg.norm(ref[n] - expect) < 1e-6, n
     assert ties_seen >= 1
+
+
+def test_joint_widths_are_measured_across_the_skin_along_the_joint_axis(phantom):
+    """A calliper across the joint along its axis: on a skin of spheres about the knees, ankles and elbows
+    the width is the sphere's diameter (plus the calliper's error, drawn from its own stream of the seed);
+    the trials carry the widths only when the markers went on a skin."""
+    from bonecap.markers import joint_centre_axis
+    from bonecap.phantom.trials import measured_joint_widths
+
+    skel, ms = phantom["skeleton"], phantom["marker_set"]
+    with_width = {n: m for n, m in ms.markers.items() if m.width is not None}
+    if phantom["kind"] == "rajagopal":
+        assert not with_width          # an OpenSim MarkerSet names no widths
+    else:
+        assert sorted(m.width[0] for m in with_width.values()) == sorted(
+            f"{s}{j}Width" for s in "LR" for j in ("Knee", "Ankle", "Elbow"))
+        radii = {n: 40.0 + 3.0 * i for i, n in enumerate(sorted(with_width))}
+        spheres = []
+        for n, m in with_width.items():
+            c, _ = joint_centre_axis(skel, m.bone, m.width[1])
+            s = trimesh.creation.icosphere(subdivisions=5, radius=radii[n])
+            s.apply_translation(c)
+            spheres.append(s)
+        skin_tm = trimesh.util.concatenate(spheres)
+        skin = Mesh(skin_tm.vertices, skin_tm.faces, skel.world)
+        exact = measured_joint_widths(skel, skin, ms, error_mm=0.0)
+        assert exact == {**{m.width[0]: 2 * radii[n] for n, m in with_width.items()}, "MarkerDiameter": 14.0}
+        noisy = [measured_joint_widths(skel, skin, ms, seed=s) for s in (1, 2)]
+        assert noisy[0] == measured_joint_widths(skel, skin, ms, seed=1)       # deterministic
+        diffs = np.array([noisy[0][k] - exact[k] for k in exact if k != "MarkerDiameter"])
+        assert 0 < np.abs(diffs).max() <= 10 and noisy[0] != noisy[1]
+    assert read_c3d(phantom["out"] / "trials" / "static.c3d").subject_parameters == {}   # no skin: no widths

@@ -68,6 +68,15 @@ How the file maps onto ``Trial``
     (``LABELS``, ``CONTEXTS``, ``TIMES`` as minutes + seconds): time in
     seconds as stored, i.e. from the start of the capture, not from
     ``first_frame``. Odd event blocks are skipped, never fatal.
+``subject_parameters``
+    The numbers of the ``PROCESSING`` group, where Vicon Nexus keeps the
+    subject's measurements that Plug-in Gait uses (``LKNEEWIDTH``,
+    ``RANKLEWIDTH``, ``LELBOWWIDTH``, ``INTERASISDISTANCE``,
+    ``MARKERDIAMETER``...), one scalar each, keyed by the parameter name in
+    upper case (C3D parameter names are case-insensitive; both readers give
+    them upper case). Kept as stored: Nexus writes these lengths in mm
+    whatever ``POINT:UNITS`` says, and the Plug-in Gait manual gives them in
+    mm. Arrays and strings in the group are skipped.
 ``first_frame``, ``rate``
     The header's first frame number (1-based as written in the file; ezc3d
     reports it 0-based, we do not); when the 16-bit header word is saturated
@@ -104,7 +113,8 @@ Writing
 Prefixes are re-attached (``prefix:label``) unless the label already carries
 them, residual words are 0 for visible samples and -1 for gaps (with
 coordinates 0), other points are written after the markers with their group
-parameter (``POINT:ANGLES``...), analogs and events when present. A marker
+parameter (``POINT:ANGLES``...), analogs, events and ``subject_parameters``
+(as ``PROCESSING`` floats) when present. A marker
 written exactly at the origin reads back as a gap, by the rule above.
 """
 
@@ -412,6 +422,18 @@ def _number(params, group: str, name: str, default: float | None = None) -> floa
     return float(arr[0]) if arr.size else default
 
 
+def _processing(params) -> dict[str, float]:
+    """The scalar numbers of the ``PROCESSING`` group (Vicon's subject measurements), upper-case names."""
+    out = {}
+    for name, value in params.get("PROCESSING", {}).items():
+        if value is None or isinstance(value, list):
+            continue
+        arr = np.ravel(np.asarray(value, dtype=float))
+        if arr.size == 1 and np.isfinite(arr[0]):
+            out[str(name).strip().upper()] = float(arr[0])
+    return out
+
+
 def _uint32_from_words(params, group: str, name: str) -> int | None:
     value = _get(params, group, name)
     if value is None or isinstance(value, list):
@@ -646,6 +668,7 @@ def read_c3d(path: str | os.PathLike, subject: str | None = None) -> Trial:
         analogs=analogs,
         analog_rate=analog_rate,
         events=_events(params),
+        subject_parameters=_processing(params),
         units=units_stored,
         metadata=metadata,
     )
@@ -894,6 +917,7 @@ def write_c3d(trial: Trial, path: str | os.PathLike) -> None:
             ag.add_param("OFFSET", desc="Analog offsets", bytes_per_element=2,
                          bytes=np.zeros(A, "<i2").tobytes(), dimensions=[A])
         _add_events(writer, trial.events)
+        _add_processing(writer, trial.subject_parameters)
         writer.set_start_frame(int(trial.first_frame))
 
         residual = np.where(visible, 0.0, -1.0).astype(np.float32)
@@ -955,6 +979,19 @@ def _add_events(writer, events: list[dict[str, Any]]) -> None:
     times = np.stack([minutes, t - 60.0 * minutes], axis=1).astype("<f4")  # (n, 2): Fortran [2, n]
     g.add_param("TIMES", desc="Event times (minutes, seconds)", bytes_per_element=4,
                 bytes=times.tobytes(), dimensions=[2, n])
+
+
+def _add_processing(writer, parameters: dict[str, float]) -> None:
+    """``Trial.subject_parameters`` as one float parameter each in ``PROCESSING`` (where Nexus keeps them)."""
+    if not parameters:
+        return
+    g = writer.get_create("PROCESSING")
+    for name, value in parameters.items():
+        key = str(name).strip().upper()
+        if not key or len(key) > 127 or not np.isfinite(float(value)):
+            raise ValueError(f"subject parameter {name!r} = {value!r} cannot be written")
+        g.add_param(key, desc="subject measurement", bytes_per_element=4,
+                    bytes=struct.pack("<f", float(value)), dimensions=[])
 
 
 def _zero_gap_coordinates(tmp: Path, visible: np.ndarray, analog_words: int) -> None:

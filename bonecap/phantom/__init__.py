@@ -474,6 +474,13 @@ the C3D trials for the motion truth.
 
 Bone frames follow the template's (ISB for the embedded skeleton; the OpenSim
 body frames for an `.osim` template).
+
+The trials (`../trials/*.c3d`) carry in their `PROCESSING` group what a gait lab
+measures with callipers and Nexus stores there: `LKNEEWIDTH`, `RKNEEWIDTH`,
+`LANKLEWIDTH`, `RANKLEWIDTH`, `LELBOWWIDTH`, `RELBOWWIDTH` (the skin's width across
+the joint along its true axis through its true centre, MRI pose, plus a calliper's
+2 mm error, whole mm) and `MARKERDIAMETER`; an OpenSim template's MarkerSet names no
+such widths and its trials carry none.
 """
 
 

@@ -1973,6 +1973,78 @@ def _sliding_joints(tr: PhantomTrial, table: JointTable) -> list[str]:
     return [n for n, c in zip(tr.joint_names, tr.joint_child) if c in moved]
 
 
+#: A calliper's error on a joint width (mm, standard deviation): repeated knee and ankle widths by trained
+#: examiners differ by 1-3 mm (McGinley et al. 2009 report the marker placement they feed as the largest
+#: error of clinical gait analysis; Plug-in Gait's manual asks for the width to the millimetre).
+WIDTH_ERROR_MM = 2.0
+
+
+def measured_joint_widths(skeleton: Skeleton, skin: Mesh, marker_set: MarkerSet, *, seed: int = 0,
+                          marker_radius_mm: float = 7.0, error_mm: float = WIDTH_ERROR_MM) -> dict[str, float]:
+    """The joint widths a gait lab measures with callipers, as Nexus stores them (C3D ``PROCESSING``).
+
+    For every marker whose set gives ``width: {parameter, joint}``
+    (:attr:`bonecap.markers.MarkerDef.width`: Plug-in Gait's knee, ankle and
+    elbow widths), the width of the skin across the joint along the joint's
+    axis through its centre -- the line the Plug-in Gait manual tells the
+    examiner to measure along -- plus a calliper's error (``error_mm``
+    standard deviation, its own random stream of ``seed`` so the rest of
+    the phantom does not change with it), rounded to the millimetre as
+    examiners write it. ``MarkerDiameter`` is the markers'.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The subject at the reference pose (the skin's frame).
+    skin : Mesh
+        The skin at that pose.
+    marker_set : MarkerSet
+    seed : int
+    marker_radius_mm : float
+    error_mm : float
+
+    Returns
+    -------
+    dict of str -> float
+        ``{parameter: width_mm}`` plus ``MarkerDiameter``; a joint whose
+        axis does not meet the skin on both sides within 150 mm is left out.
+    """
+    import trimesh
+
+    from bonecap.markers import joint_centre_axis
+
+    if not error_mm >= 0:
+        raise ValueError(f"error_mm must be >= 0, got {error_mm}")
+    rng = np.random.default_rng([int(seed), 0x77696474])        # "widt": a stream of its own
+    V, F = np.asarray(skin.vertices, float), np.asarray(skin.faces)
+    centroids = V[F].mean(axis=1)
+    out: dict[str, float] = {}
+    for name in sorted(marker_set.markers):
+        m = marker_set.markers[name]
+        if m.width is None or m.bone not in skeleton.bones:
+            continue
+        try:
+            centre, axis = joint_centre_axis(skeleton, m.bone, m.width[1])
+        except ValueError:
+            continue
+        near = np.linalg.norm(centroids - centre, axis=1) < 150.0
+        if not near.any():
+            continue
+        local = trimesh.Trimesh(V, F[near], process=False)
+        hits = []
+        for d in (axis, -axis):
+            loc, _, _ = local.ray.intersects_location(centre[None], d[None])
+            t = (loc - centre) @ d
+            t = t[t > 0]
+            hits.append(float(t.min()) if t.size else np.nan)
+        if not np.isfinite(hits).all():
+            continue
+        out[m.width[0]] = float(np.round(sum(hits) + rng.normal(0.0, error_mm)))
+    if out:
+        out["MarkerDiameter"] = 2.0 * float(marker_radius_mm)
+    return out
+
+
 def make_trials(skeleton: Skeleton, marker_set: MarkerSet, out_dir: str | os.PathLike, *,
                 skin: Mesh | None = None, seed: int = 0, trials: Sequence[str] = TRIAL_NAMES,
                 duration_scale: float = 1.0, sta_scale: float = 1.0, noise_mm: float = 0.5,
@@ -2053,10 +2125,14 @@ def make_trials(skeleton: Skeleton, marker_set: MarkerSet, out_dir: str | os.Pat
                                                                                           sta_model.amplitude_mm)
                                                                           if k == c)), 3)
                                                         for c in sorted(set(sta_model.classes))}}}
+    # the subject's measurements go with every trial, as Nexus writes them
+    widths = measured_joint_widths(skeleton, skin, marker_set, seed=seed, marker_radius_mm=marker_radius_mm) \
+        if skin is not None else {}
+    summary["subject_parameters"] = widths
     for tr in made:
         c3d_path = out / "trials" / f"{tr.name}.c3d"
         trial = Trial(labels=tr.markers, points=tr.points, rate=RATE_HZ, first_frame=1,
-                      prefixes=[subject] * len(tr.markers), events=tr.motion.events,
+                      prefixes=[subject] * len(tr.markers), events=tr.motion.events, subject_parameters=widths,
                       metadata={"source": "bonecap phantom", "trial": tr.name})
         write_c3d(trial, c3d_path)
         npz_path = out / "truth" / f"{tr.name}_poses.npz"
