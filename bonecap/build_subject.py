@@ -840,11 +840,14 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     The template's markers are placed by the marker set's manual rules
     (:func:`bonecap.markers.place_markers`), except where the static trial
     carries the subject's measured joint widths (Plug-in Gait's
-    ``LKneeWidth``, ``LAnkleWidth``, ``LElbowWidth`` in the C3D's
-    ``PROCESSING`` group, as Nexus writes them): there the lateral knee,
-    ankle and elbow markers are set out to half the width plus a marker
-    radius from the joint centre (:func:`bonecap.markers.joint_width_placement`),
-    as Plug-in Gait places its joint centres.
+    ``LKneeWidth``, ``LAnkleWidth`` in the C3D's ``PROCESSING`` group, as
+    Nexus writes them): there the lateral knee and ankle markers are set
+    out to half the width plus a marker radius from the joint centre
+    (:func:`bonecap.markers.joint_width_placement`), as Plug-in Gait places
+    its joint centres. The static is posed by six sweeps of the
+    joint-coupled solver, then its legs are solved to convergence with the
+    knee and ankle centres held where those markers put them
+    (:func:`converge_limbs`).
 
     Parameters
     ----------

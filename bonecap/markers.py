@@ -538,7 +538,7 @@ def joint_width_placement(marker_set: MarkerSet, skeleton: Skeleton, placed: dic
     A template's tissue depth over the knee or the malleoli is a typical
     adult's; a subject's is not (the Plug-in Gait subject of ``../shared``,
     85 kg: knee widths of 139-144 mm, where the template's skin gives about
-    100). Gait labs measure these widths with callipers and store them with
+    82). Gait labs measure these widths with callipers and store them with
     the trials (C3D ``PROCESSING``: ``LKneeWidth``, ``LAnkleWidth``,
     ``LElbowWidth``), and Plug-in Gait puts the joint centre half the width
     plus a marker radius in from the marker, along the joint's axis (the

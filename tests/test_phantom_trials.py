@@ -628,7 +628,7 @@ def test_joint_widths_are_measured_across_the_skin_along_the_joint_axis(phantom)
         assert not with_width          # an OpenSim MarkerSet names no widths
     else:
         assert sorted(m.width[0] for m in with_width.values()) == sorted(
-            f"{s}{j}Width" for s in "LR" for j in ("Knee", "Ankle", "Elbow"))
+            f"{s}{j}Width" for s in "LR" for j in ("Knee", "Ankle"))
         radii = {n: 40.0 + 3.0 * i for i, n in enumerate(sorted(with_width))}
         spheres = []
         for n, m in with_width.items():

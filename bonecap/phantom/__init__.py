@@ -477,7 +477,7 @@ body frames for an `.osim` template).
 
 The trials (`../trials/*.c3d`) carry in their `PROCESSING` group what a gait lab
 measures with callipers and Nexus stores there: `LKNEEWIDTH`, `RKNEEWIDTH`,
-`LANKLEWIDTH`, `RANKLEWIDTH`, `LELBOWWIDTH`, `RELBOWWIDTH` (the skin's width across
+`LANKLEWIDTH`, `RANKLEWIDTH` (the skin's width across
 the joint along its true axis through its true centre, MRI pose, plus a calliper's
 2 mm error, whole mm) and `MARKERDIAMETER`; an OpenSim template's MarkerSet names no
 such widths and its trials carry none.

@@ -1984,8 +1984,8 @@ def measured_joint_widths(skeleton: Skeleton, skin: Mesh, marker_set: MarkerSet,
     """The joint widths a gait lab measures with callipers, as Nexus stores them (C3D ``PROCESSING``).
 
     For every marker whose set gives ``width: {parameter, joint}``
-    (:attr:`bonecap.markers.MarkerDef.width`: Plug-in Gait's knee, ankle and
-    elbow widths), the width of the skin across the joint along the joint's
+    (:attr:`bonecap.markers.MarkerDef.width`: Plug-in Gait's knee and ankle
+    widths), the width of the skin across the joint along the joint's
     axis through its centre -- the line the Plug-in Gait manual tells the
     examiner to measure along -- plus a calliper's error (``error_mm``
     standard deviation, its own random stream of ``seed`` so the rest of
