@@ -1082,3 +1082,18 @@ def test_no_mri_knees_and_ankles_are_held_where_the_lateral_markers_put_them(pha
     bare, report = build_from_static(tmp_path / "bare.c3d")
     assert report["measured_joint_widths"] == {} and report["joint_centre_targets"] == 4
     assert sum(errors(bare).values()) < sum(e_sweeps.values()), (errors(bare), e_sweeps)
+
+
+def test_a_width_that_is_no_joints_is_a_clear_error(phantom, tmp_path, cli):
+    """A knee width in the wrong unit (1.3 m written as 1300) stops the no-MRI build with one line naming
+    the file and the parameter, and nothing is written."""
+    from bonecap.io.c3d import read_c3d, write_c3d
+
+    trial = read_c3d(phantom / "trials/static.c3d")
+    trial.subject_parameters = {**trial.subject_parameters, "LKNEEWIDTH": 1300.0}
+    write_c3d(trial, tmp_path / "bad.c3d")
+    res = cli("build-subject", "--static", str(tmp_path / "bad.c3d"), "-o", str(tmp_path / "out"))
+    assert res.returncode != 0
+    assert "bad.c3d" in res.stderr and "LKneeWidth = 1300 mm is not a joint width" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
