@@ -612,9 +612,8 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
 JOINT_TARGET_WEIGHT = 10.0
 
 
-def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], static_lab: np.ndarray,
-                         poses: np.ndarray, placed: dict[str, np.ndarray]
-                         ) -> tuple[list[str], np.ndarray, np.ndarray]:
+def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], marker_local: np.ndarray,
+                         static_lab: np.ndarray, poses: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Where the static's lateral joint markers put their joints' centres (Plug-in Gait's rule).
 
     A marker over the side of a joint (one whose set gives ``width: {parameter,
@@ -637,12 +636,12 @@ def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[
     marker_set : MarkerSet
     names : list of str
         The static's markers.
+    marker_local : ndarray (M, 3)
+        Their places on ``skeleton`` in their bones' frames (mm), depths included.
     static_lab : ndarray (M, 3)
         The measured static markers (lab, mm).
     poses : ndarray (B, 4, 4)
         A first ``bone_to_lab`` pose of every bone (the axes' directions).
-    placed : dict of str -> ndarray (3,)
-        The markers' places on ``skeleton`` (world, mm), depths included.
 
     Returns
     -------
@@ -662,9 +661,9 @@ def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[
 
     idx = {n: i for i, n in enumerate(skeleton.names)}
     bones, local, target = [], [], []
-    for n, p in zip(names, np.asarray(static_lab, float)):
+    for n, m_loc, p in zip(names, np.asarray(marker_local, float), np.asarray(static_lab, float)):
         m = marker_set.markers.get(n)
-        if m is None or m.width is None or n not in placed or not np.isfinite(p).all():
+        if m is None or m.width is None or not np.isfinite(p).all():
             continue
         T = poses[idx[m.bone]]
         if not np.isfinite(T).all():
@@ -677,7 +676,7 @@ def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[
         B = skeleton.bones[m.bone].bone_to_world
         c_loc = B[:3, :3].T @ (centre - B[:3, 3])
         a_loc = B[:3, :3].T @ axis
-        along = float((B[:3, :3].T @ (np.asarray(placed[n], float) - B[:3, 3]) - c_loc) @ a_loc)
+        along = float((m_loc - c_loc) @ a_loc)
         if along < 0:
             a_loc, along = -a_loc, -along
         bones.append(m.bone)
@@ -687,8 +686,8 @@ def joint_centre_targets(skeleton: Skeleton, marker_set: MarkerSet, names: list[
 
 
 def converge_limbs(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], marker_bones: list[str],
-                   marker_local: np.ndarray, static_lab: np.ndarray, first: np.ndarray,
-                   placed: dict[str, np.ndarray], *, weight: float = JOINT_TARGET_WEIGHT) -> tuple[np.ndarray, int]:
+                   marker_local: np.ndarray, static_lab: np.ndarray, first: np.ndarray, *,
+                   weight: float = JOINT_TARGET_WEIGHT) -> tuple[np.ndarray, int]:
     """The limbs whose joint centres the static's lateral markers give, fitted to convergence with them held.
 
     The no-MRI static is first posed by the six sweeps a trial gets, which
@@ -715,8 +714,6 @@ def converge_limbs(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], 
         The measured static markers (lab, mm).
     first : ndarray (B, 4, 4)
         The six sweeps' ``bone_to_lab``.
-    placed : dict of str -> ndarray (3,)
-        The markers' places on ``skeleton`` (world, mm).
     weight : float
         A target's weight.
 
@@ -732,8 +729,8 @@ def converge_limbs(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], 
 
     if not (np.isfinite(weight) and weight > 0):
         raise ValueError(f"weight must be a positive number, got {weight!r}")
-    vb, vl, vt = joint_centre_targets(skeleton, marker_set, names, static_lab, neutral_twist(skeleton, first),
-                                      placed)
+    vb, vl, vt = joint_centre_targets(skeleton, marker_set, names, marker_local, static_lab,
+                                      neutral_twist(skeleton, first))
     root = skeleton.names[0]
     idx = {n: i for i, n in enumerate(skeleton.names)}
     R0 = first[idx[root]]
@@ -931,7 +928,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     # off on the phantoms of seeds 0-3): the legs are then converged with their knee and ankle centres held
     # where the lateral markers put them (converge_limbs).
     first = pose_to_static(sk, bones, local, lab, converge=False)
-    poses, n_targets = converge_limbs(sk, mset, names, bones, local, lab, first, placed)
+    poses, n_targets = converge_limbs(sk, mset, names, bones, local, lab, first)
     poses = neutral_twist(sk, poses)
     poses = neutral_twist(sk, poses, HAND_PREFIXES, HAND_AXES)
     poses = joint_consistent(sk, neutral_twist(sk, poses, FOOT_PREFIXES, FOOT_AXES))

@@ -1067,8 +1067,7 @@ def test_no_mri_knees_and_ankles_are_held_where_the_lateral_markers_put_them(pha
     assert {k: v["width_mm"] for k, v in report["measured_joint_widths"].items()} == {
         m: read_c3d(static).subject_parameters[f"{m[0]}{'KNEE' if m.endswith('KNE') else 'ANKLE'}WIDTH"]
         for m in ("LKNE", "RKNE", "LANK", "RANK")}
-    monkeypatch.setattr("bonecap.build_subject.converge_limbs", lambda sk, ms, n, b, loc, lab, first, placed:
-                        (first, 0))
+    monkeypatch.setattr("bonecap.build_subject.converge_limbs", lambda sk, ms, n, b, loc, lab, first: (first, 0))
     sweeps, _ = build_from_static(static)
     monkeypatch.undo()
     e_held, e_sweeps = errors(held), errors(sweeps)
