@@ -8,6 +8,8 @@ proximal; ``FE`` femur, ``TI`` tibia). A user without MRI runs ``bonecap build-s
 template scaled to the static trial) and ``bonecap animate``; this script does exactly that, then compares
 ``<trial>_angles.csv`` (``femur_*`` = hip, ``tibia_*`` = knee; flexion positive) with Vicon's angles:
 RMS of the difference, its mean (a constant offset) and its standard deviation (what the offset leaves).
+Also printed: each marker group's residual (how far the solved bones put the markers from where they were)
+and the elbow's flexion against Plug-in Gait's ``ElbowAngles``.
 
 Plug-in Gait's thigh twist comes from the thigh wand marker: a wand a few degrees off turns the femur's
 frame about its long axis and knee flexion leaks into knee adduction ("cross-talk"; Baudet et al. 2014).
@@ -151,6 +153,27 @@ def main() -> None:
               f"{st['corr']:.3f} |")
         print(f"|   | (Vicon frames reproduce KneeAngles flexion to {check['rms']:.2f} deg RMS; bonecap's femur "
               f"turned {twist:+.1f} deg from Vicon's about its long axis) | | | | |")
+    # How well the solved bones carry the markers: each marker's median distance from where its bone puts
+    # it (mm), by group; the static binds every marker, so what is left is the model (joints, rigid
+    # segments) against the movement's skin and pose.
+    res = np.nanmedian(poses["residuals"], axis=0)
+    labels = [str(m) for m in poses["markers"]]
+    groups = {"head": ("FHD", "BHD"), "trunk": ("C7", "T10", "CLAV", "STRN", "RBAK"), "shoulder": ("SHO",),
+              "upper arm": ("UPA", "ELB"), "forearm and hand": ("FRM", "WRA", "WRB", "FIN"),
+              "pelvis": ("ASI", "PSI"), "leg": ("THI", "KNE", "TIB", "ANK"), "foot": ("HEE", "TOE")}
+    out["marker_residual_median_mm"] = {}
+    print("\n| marker group | residual median over its markers (mm) | markers |")
+    print("|---|---:|---|")
+    for g, keys in groups.items():
+        idx = [i for i, m in enumerate(labels) if m.lstrip("LR") in keys or m in keys]
+        v = float(np.median(res[idx]))
+        out["marker_residual_median_mm"][g] = {labels[i]: round(float(res[i]), 1) for i in idx}
+        print(f"| {g} | {v:.1f} | {', '.join(f'{labels[i]} {res[i]:.0f}' for i in idx)} |")
+    # the elbow against Plug-in Gait's ElbowAngles (flexion): ours is the ulna on the humerus
+    for side in "LR":
+        st = _stats(col(f"ulna_{side.lower()}_flexion_deg"), trial.other_points[f"{side}ElbowAngles"][:, 0])
+        out[f"{side}ElbowFlexion"] = st
+        print(f"{side} elbow flexion vs Vicon: RMS {st['rms']:.1f}, mean {st['mean']:+.1f}, SD {st['sd']:.1f} deg")
     (args.work / "results.json").write_text(json.dumps(out, indent=1))
     print(f"-> {args.work / 'results.json'}")
 

@@ -571,39 +571,34 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     a pose would bake the gaps in, and every later solve would fight them
     (a two-marker shank can flip to the wrong side of its axis doing so).
     Each bone keeps its solved orientation; its position follows its parent
-    through the shared joint centre (:func:`bonecap.skeleton.kinematics.pose_skeleton`).
-    Unsolved bones keep their reference orientation relative to the parent.
+    through the shared joint centre (:func:`bonecap.skeleton.kinematics.joint_pair`:
+    a shoulder girdle's sternoclavicular joint too, which the sternum lists per
+    side). Unsolved bones, and bones that meet their parent at no named joint,
+    keep their reference pose relative to the parent.
     """
-    from bonecap.skeleton.kinematics import PIVOT_JOINTS, pose_skeleton, proximal_joint
+    from bonecap.skeleton.kinematics import PIVOT_JOINTS, joint_pair
 
     idx = {n: i for i, n in enumerate(skeleton.names)}
-    rots = {}
-    # orientations of the rebuilt chain, parent first
-    new_R: dict[str, np.ndarray] = {}
-    for n in skeleton.names:
+    out = np.zeros((len(skeleton.names), 4, 4))
+    for n in skeleton.names:                    # parent before child
         b = skeleton.bones[n]
+        solved = np.isfinite(poses[idx[n]]).all()
         if b.parent is None:
-            new_R[n] = poses[idx[n]][:3, :3] if np.isfinite(poses[idx[n]]).all() else b.bone_to_world[:3, :3]
+            out[idx[n]] = poses[idx[n]] if solved else b.bone_to_world
             continue
-        rest = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)[:3, :3]
-        P = new_R[b.parent]
-        C = poses[idx[n]][:3, :3]
-        try:
-            # the radius pivots on the ulna at the radial head: without naming that pivot
-            # it would fall back to its reference twist and lose the solved pronation
-            proximal_joint(skeleton, n, PIVOT_JOINTS)
-            shared = True
-        except ValueError:
-            shared = False
-        if shared and np.isfinite(C).all():
-            R = P.T @ C @ rest.T
-            rots[n] = R
-            new_R[n] = P @ R @ rest
-        else:
-            new_R[n] = P @ rest
-    root = skeleton.names[0]
-    root_pose = poses[idx[root]] if np.isfinite(poses[idx[root]]).all() else skeleton.bones[root].bone_to_world
-    return pose_skeleton(skeleton, root_pose, rots, pivots=PIVOT_JOINTS)[0]
+        Tp = out[idx[b.parent]]
+        # the radius pivots on the ulna at the radial head: without naming that pivot it would fall
+        # back to its reference twist and lose the solved pronation
+        pair = joint_pair(skeleton, n, PIVOT_JOINTS)
+        if pair is None or not solved:
+            out[idx[n]] = Tp @ np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
+            continue
+        c_parent, c_child = pair
+        T = np.eye(4)
+        T[:3, :3] = poses[idx[n]][:3, :3]
+        T[:3, 3] = Tp[:3, :3] @ c_parent + Tp[:3, 3] - T[:3, :3] @ c_child
+        out[idx[n]] = T
+    return out
 
 
 #: Weight of a joint centre target (:func:`joint_centre_targets`, :func:`converge_limbs`) in the no-MRI

@@ -170,6 +170,81 @@ def test_a_vertebra_with_one_marker_joins_the_trunk_above_it():
     assert old > 9.0                                  # what riding on the pelvis would have missed
 
 
+def girdle_skeleton():
+    """thorax -> clavicle_r (sternoclavicular; the thorax lists it as ``sternoclavicular_r``, as the
+    embedded skeleton's sternum does) -> scapula_r (acromioclavicular) -> humerus_r (shoulder); frames =
+    world at rest (x anterior, y right, z up), mm."""
+    def T(p):
+        M = np.eye(4)
+        M[:3, 3] = p
+        return M
+    sc, ac, gh = np.array([30.0, 20.0, 1400.0]), np.array([-10.0, 170.0, 1420.0]), np.array([-20.0, 180.0, 1380.0])
+    bones = {
+        "thorax": Bone("thorax", None, bone_to_world=T([0, 0, 1300]),
+                       joint_centres={"sternoclavicular_r": sc - [0, 0, 1300]}),
+        "clavicle_r": Bone("clavicle_r", "thorax", bone_to_world=T(sc),
+                           joint_centres={"sternoclavicular": [0, 0, 0], "acromioclavicular": ac - sc}),
+        "scapula_r": Bone("scapula_r", "clavicle_r", bone_to_world=T(ac),
+                          joint_centres={"acromioclavicular": [0, 0, 0], "shoulder": gh - ac},
+                          landmarks={"inferior_angle": [-60.0, -70.0, -150.0]}),
+        "humerus_r": Bone("humerus_r", "scapula_r", bone_to_world=T(gh), joint_centres={"shoulder": [0, 0, 0]}),
+    }
+    return Skeleton(bones, world="model")
+
+
+def test_a_shoulder_girdle_with_its_acromion_marker_turns_on_the_thorax():
+    """The acromion marker rides on the girdle (clavicle and scapula), which rises and retracts on the
+    thorax as the arm is raised (scapulohumeral rhythm): the girdle gets its own pose, turning at the
+    sternoclavicular joint, held about the line from that joint to its one marker by a weak prior. On
+    the thorax (before) the shoulder stood still while the acromion moved, and the arm hung from it."""
+    skel = girdle_skeleton()
+    mb = ["thorax"] * 4 + ["scapula_r"] + ["humerus_r"] * 2
+    local = np.array([[100, -60, 50], [100, 60, 50], [-90, 0, 120], [-90, 40, -150],   # thorax
+                      [0, 10, 15],                                                    # acromion
+                      [25, 45, -150], [0, 35, -290]], float)                          # upper arm, elbow
+    plan = plan_segments(skel, mb)
+    assert plan.roots() == ["thorax", "clavicle_r", "humerus_r"]
+    seg = plan.segments[plan.segment_of["scapula_r"]]
+    assert seg.root == "clavicle_r" and seg.joint == "sternoclavicular" and seg.prior_in_self is not None
+    np.testing.assert_allclose(seg.joint_in_parent, skel.bones["thorax"].joint_centres["sternoclavicular_r"])
+    # the girdle lifts (about anterior) and retracts (about up) by up to 15 and 12 deg while the arm
+    # abducts 70 deg on the scapula; the thorax walks and turns
+    F = 50
+    t = np.linspace(0, 1, F)
+    root = np.tile(np.eye(4), (F, 1, 1))
+    root[:, :3, :3] = Rotation.from_rotvec(np.c_[0.05 * t, 0.1 * t, 0.4 * t]).as_matrix()
+    root[:, :3, 3] = np.c_[600 * t, 10 * t, 1300 + 5 * t]
+    girdle = Rotation.from_rotvec(np.c_[np.radians(15) * t, 0 * t, -np.radians(12) * t]).as_matrix()
+    arm = Rotation.from_rotvec(np.c_[np.radians(70) * t, 0.2 * t, 0 * t]).as_matrix()
+    T = np.tile(np.eye(4), (F, 4, 1, 1))
+    T[:, 0] = root
+    for i, (name, R) in enumerate((("clavicle_r", girdle), ("scapula_r", None), ("humerus_r", arm)), start=1):
+        b = skel.bones[name]
+        rest = np.linalg.solve(skel.bones[b.parent].bone_to_world, b.bone_to_world)
+        J = np.tile(np.eye(4), (F, 1, 1))
+        if R is not None:
+            c = rest[:3, 3]                     # the joint centre is each child's origin
+            J[:, :3, :3] = R
+            J[:, :3, 3] = c - R @ c
+        T[:, i] = T[:, i - 1] @ J @ rest
+    Tb = T[:, [skel.names.index(b) for b in mb]]
+    markers = np.einsum("fmij,mj->fmi", Tb[..., :3, :3], local) + Tb[..., :3, 3]
+    mo = solve_lsq(skel, mb, local, markers, rate_hz=100.0)
+    assert mo.valid.all()
+    err = rotation_angle_deg(mo.transforms, T)
+    # noise-free, the girdle's 19 deg: what is left is mostly its turn about its own long axis (the line
+    # from the joint to the marker), which the prior holds and the arm's shoulder centre sets only weakly
+    assert err[:, 1].max() < 8.0 and err[:, 3].max() < 3.0
+    assert mo.residuals[:, 4].max() < 6.0                          # the acromion marker
+    # the girdle carried rigidly by the thorax (the former plan) leaves the acromion and the arm behind
+    rigid = solve_lsq(skel, mb, local, markers, rate_hz=100.0,
+                      segments={"thorax": "thorax", "clavicle_r": "thorax", "scapula_r": "thorax",
+                                "humerus_r": "humerus_r"})
+    assert rigid.residuals[:, 4].max() > 20.0
+    r_err = rotation_angle_deg(rigid.transforms, T)
+    assert r_err[:, 1].max() > 12.0 and r_err[:, 3].max() > 6.0
+
+
 def test_coupled_solver_exact_on_noise_free_ball_joints():
     skel, T, markers, _ = truth_motion()
     mo = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers, rate_hz=100.0)
@@ -345,14 +420,28 @@ def test_phantom_trials_against_truth(phantom):
         d = np.load(phantom / "truth" / f"{trial}_poses.npz")
         tr = read_c3d(phantom / "trials" / f"{trial}.c3d")
         meas = tr.points[:, [tr.labels.index(m) for m in d["markers"]]]
-        mo = solve_lsq(skel, list(d["marker_bones"]), d["marker_local"], meas, marker_labels=list(d["markers"]))
+        mb = list(d["marker_bones"])
+        mo = solve_lsq(skel, mb, d["marker_local"], meas, marker_labels=list(d["markers"]))
+        # the girdles carried by the thorax, as before they had a pose of their own
+        plan = plan_segments(skel, mb)
+        rigid = {n: plan.segments[plan.segment_of[n]].root for n in skel.names}
+        rigid = {n: rigid["sternum"] if r.startswith("clavicle") else r for n, r in rigid.items()}
+        old = solve_lsq(skel, mb, d["marker_local"], meas, marker_labels=list(d["markers"]), segments=rigid)
         names = list(d["bones"])
         for bone in ("humerus_r", "humerus_l", "femur_r", "tibia_r", "ulna_r"):
             i = names.index(bone)
             deg = rotation_angle_deg(mo.transforms[:, i], d["transforms"][:, i])
             assert np.nanmedian(deg) < limit, (trial, bone, np.nanmedian(deg))
             mm = np.linalg.norm(mo.transforms[:, i, :3, 3] - d["transforms"][:, i, :3, 3], axis=1)
-            assert np.nanmedian(mm) < 3.0, (trial, bone, np.nanmedian(mm))
+            if bone.startswith("humerus") and trial == "arm_raise":
+                # the phantom's scapula also turns upward on the clavicle (GIRDLE_RHYTHM, ~30 deg at the
+                # raise's 150 deg), which the solver's rigid girdle does not follow: the shoulder centre
+                # 5-6 mm off at seed 2, against 16 mm with the girdle on the thorax
+                old_mm = np.linalg.norm(old.transforms[:, i, :3, 3] - d["transforms"][:, i, :3, 3], axis=1)
+                assert np.nanmedian(mm) < 7.0 and np.nanmedian(old_mm) > 2 * np.nanmedian(mm), \
+                    (bone, np.nanmedian(mm), np.nanmedian(old_mm))
+            else:
+                assert np.nanmedian(mm) < 3.0, (trial, bone, np.nanmedian(mm))
 
 
 def arm_skeleton(elbow="elbow_r"):

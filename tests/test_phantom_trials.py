@@ -645,3 +645,44 @@ def test_joint_widths_are_measured_across_the_skin_along_the_joint_axis(phantom)
         diffs = np.array([noisy[0][k] - exact[k] for k in exact if k != "MarkerDiameter"])
         assert 0 < np.abs(diffs).max() <= 10 and noisy[0] != noisy[1]
     assert read_c3d(phantom["out"] / "trials" / "static.c3d").subject_parameters == {}   # no skin: no widths
+
+
+def test_the_shoulder_girdle_follows_the_arms_elevation(phantom):
+    """Scapulohumeral rhythm (trials.GIRDLE_RHYTHM): the clavicle rises and retracts and the scapula turns
+    upward as the arm is raised, so the acromion (the shoulder marker's bone) moves on the thorax by
+    centimetres, while the humerus keeps the orientation its shoulder angles give it relative to the
+    thorax (the girdle only carries the shoulder centre). An OpenSim model without clavicles has none."""
+    from dataclasses import replace
+
+    from bonecap.phantom.trials import GIRDLE_RHYTHM, girdle_angles, pose_trial, trial_motion
+
+    skel = phantom["skeleton"]
+    table = joint_table(skel)
+    if phantom["kind"] == "rajagopal":
+        assert table.girdles == {}
+        return
+    assert set(table.girdles) == {"r", "l"}
+    m = trial_motion("arm_raise", table, skeleton=skel, duration_scale=0.3)
+    T, _ = pose_trial(skel, table, m)
+    T0, _ = pose_trial(skel, replace(table, girdles={}), m)
+    names = skel.names
+    th, sc, hu = names.index("t6"), names.index("scapula_r"), names.index("humerus_r")
+    E = girdle_angles(table, m.angles, "r")["clavicle_elevation"] / GIRDLE_RHYTHM["clavicle_elevation"]
+    top, rest = int(np.argmax(E)), int(np.argmin(E))
+    assert E[top] > 140 and E[rest] < 1
+
+    def in_thorax(T_, i, p):
+        return np.linalg.solve(T_[:, th], np.c_[_apply(T_[:, i], p), np.ones(len(T_))][..., None])[:, :3, 0]
+
+    acr = skel.bones["scapula_r"].landmarks["acromion"]
+    up = in_thorax(T, sc, acr)[top] - in_thorax(T, sc, acr)[rest]
+    assert up[1] > 25.0 and np.linalg.norm(up) > 40.0            # ISB thorax: y cranial
+    assert np.linalg.norm(in_thorax(T0, sc, acr)[top] - in_thorax(T0, sc, acr)[rest]) < 1e-6
+    # the humerus's orientation in the thorax is the girdle-free one
+    R = np.linalg.solve(T[:, th, :3, :3], T[:, hu, :3, :3])
+    R0 = np.linalg.solve(T0[:, th, :3, :3], T0[:, hu, :3, :3])
+    assert np.abs(R - R0).max() < 1e-9
+    # the joints still meet: the shoulder centre rides on the scapula
+    gh_s = _apply(T[:, sc], skel.bones["scapula_r"].joint_centres["shoulder"])
+    gh_h = _apply(T[:, hu], skel.bones["humerus_r"].joint_centres["shoulder"])
+    assert np.abs(gh_s - gh_h).max() < 1e-6

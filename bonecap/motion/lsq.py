@@ -96,7 +96,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Motion, Skeleton
-from bonecap.skeleton.kinematics import HINGE_JOINTS, PIVOT_JOINTS
+from bonecap.skeleton.kinematics import GIRDLE_JOINTS, HINGE_JOINTS, PIVOT_JOINTS, parent_joint_key
 
 __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_markers", "DEFAULT_JOINT_WEIGHT"]
 
@@ -118,6 +118,12 @@ _NEWTON_MAX_FRAMES = 64
 #: Distance (mm) of a hinge's two axis points from its centre: about the elbow's width, so that
 #: the axis weighs like the markers 100-250 mm down the forearm.
 HINGE_LEVER_MM = 40.0
+#: A shoulder girdle's hold on its reference pose relative to the thorax, as a fraction of the
+#: joint stiffness (:meth:`Segment.link_weights`): one marker (the acromion) and the
+#: sternoclavicular joint leave the girdle's turn about the line through them free, which this
+#: weak pull holds; it is small beside the acromion marker's weight, so the marker moves the
+#: girdle (its elevation and protraction) nearly as far as it moves.
+GIRDLE_PRIOR = 0.01
 
 
 # ----------------------------------------------------------------------------- segments
@@ -144,6 +150,11 @@ class Segment:
     axis_in_self, axis_in_parent : ndarray (3,) or None
         Where ``joint`` is a hinge: its unit axis in this segment's frame and in the
         parent segment's frame (the same line at the reference pose).
+    prior_in_self, prior_in_parent : ndarray (3,) or None
+        A shoulder girdle's (:data:`~bonecap.skeleton.kinematics.GIRDLE_JOINTS`) weak hold
+        on its reference pose relative to the parent: one point of the girdle far from its
+        joint, in this segment's frame and where it lies in the parent's at the reference
+        pose, pulled together with :data:`GIRDLE_PRIOR` of the joint's stiffness.
     """
 
     root: str
@@ -155,10 +166,13 @@ class Segment:
     rest_to_root: dict
     axis_in_self: np.ndarray | None = None
     axis_in_parent: np.ndarray | None = None
+    prior_in_self: np.ndarray | None = None
+    prior_in_parent: np.ndarray | None = None
 
     def links(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The points tying this segment to its parent, as (in self, in parent) pairs: the joint
-        centre, and for a hinge the two points :data:`HINGE_LEVER_MM` either side of it on the axis."""
+        centre, for a hinge the two points :data:`HINGE_LEVER_MM` either side of it on the axis,
+        and a girdle's prior point (weighted apart, :meth:`link_weights`)."""
         if self.joint is None:
             return []
         out = [(self.joint_in_self, self.joint_in_parent)]
@@ -166,7 +180,17 @@ class Segment:
             for sign in (1.0, -1.0):
                 out.append((self.joint_in_self + sign * HINGE_LEVER_MM * self.axis_in_self,
                             self.joint_in_parent + sign * HINGE_LEVER_MM * self.axis_in_parent))
+        if self.prior_in_self is not None:
+            out.append((self.prior_in_self, self.prior_in_parent))
         return out
+
+    def link_weights(self, joint_weight: float) -> list[float]:
+        """The weight of each of :meth:`links` (marker equivalents): ``joint_weight`` for the joint
+        and hinge points, :data:`GIRDLE_PRIOR` of it for a girdle's prior point."""
+        w = [float(joint_weight)] * len(self.links())
+        if self.prior_in_self is not None:
+            w[-1] *= GIRDLE_PRIOR
+        return w
 
 
 @dataclass(frozen=True)
@@ -192,6 +216,9 @@ def _shared_joint(skeleton: Skeleton, bone: str, joints: Mapping[str, str]) -> s
                              f"parent {b.parent!r}")
         return name
     shared = [n for n in b.joint_centres if n in parent.joint_centres]
+    if not shared:
+        # a girdle's joint, which the parent lists once per side (the sternum's "sternoclavicular_r")
+        shared = [n for n in b.joint_centres if n in GIRDLE_JOINTS and parent_joint_key(skeleton, bone, n) is not None]
     if len(shared) <= 1:
         return shared[0] if shared else None
     for name in _PREFERRED_JOINTS:
@@ -235,6 +262,31 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
     return a / n if n > 0 else None
 
 
+def _base(joint: str | None) -> str | None:
+    """A joint's name without its side suffix."""
+    if joint is None:
+        return None
+    return joint[:-2] if joint.endswith(("_r", "_l")) else joint
+
+
+def _girdle_prior_point(skeleton: Skeleton, root: str, members: Sequence[str],
+                        joint_in_root: np.ndarray) -> np.ndarray | None:
+    """The point a girdle's prior holds (root's frame, mm): of its bones' landmarks and joint centres,
+    the one farthest from its proximal joint (the scapula's inferior angle on the embedded
+    skeleton), the longest lever on the girdle's turn about the line from the joint to its marker."""
+    T_r = skeleton.bones[root].bone_to_world
+    best, far = None, 0.0
+    for m in members:
+        bone = skeleton.bones[m]
+        T = np.linalg.solve(T_r, bone.bone_to_world)
+        for p in list(bone.landmarks.values()) + list(bone.joint_centres.values()):
+            q = T[:3, :3] @ np.asarray(p, float) + T[:3, 3]
+            d = float(np.linalg.norm(q - joint_in_root))
+            if d > far:
+                best, far = q, d
+    return best
+
+
 def _is_vertebra(name: str) -> bool:
     """A vertebra's name: the embedded skeleton's ``c1``-``c7``, ``t1``-``t12``, ``l1``-``l5``, or an OpenSim
     lumbar model's ``lumbar1``-``lumbar5`` / ``thoracic1``-``thoracic12``."""
@@ -265,7 +317,14 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     and T10 turned with it: a phantom's trunk turning on the pelvis in a walk
     left them 4-8 deg off, and T10 tilted a real subject's static pelvis 13
     deg from Plug-in Gait's. C7's vertebra does not take the neck and head
-    over (they keep their own segment on the thorax). Any
+    over (they keep their own segment on the thorax). A shoulder girdle
+    (the bone whose proximal joint is one of
+    :data:`~bonecap.skeleton.kinematics.GIRDLE_JOINTS`, the clavicle, with the
+    scapula riding on it) that carries a marker (Plug-in Gait's acromion
+    marker) has a pose of its own, turning on the thorax at the
+    sternoclavicular joint; with a single marker its turn about the line from
+    the joint to the marker is held by a weak prior (:data:`GIRDLE_PRIOR`,
+    :attr:`Segment.prior_in_self`). Any
     other bone rides on its parent at the reference relative pose (a patella,
     a fibula, ribs).
 
@@ -348,6 +407,12 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                 is_root[b] = True
             elif determined(pend, b):
                 is_root[b] = True
+            elif pend >= 1 and _base(joint[b]) in GIRDLE_JOINTS:
+                # a shoulder girdle with its acromion marker: its own pose, held about the line through
+                # marker and joint by a weak prior (Segment.prior_in_self); on the thorax it stood still
+                # while the acromion moved by centimetres with the arm (a real trial's shoulder markers
+                # 35-44 mm from the fit, and the arms hanging from them 36-61 mm)
+                is_root[b] = True
             elif kid_roots and (own[b] == 0 or (_is_vertebra(b) and all(_is_vertebra(c) and _holds_ribs(c)
                                                                           for c in kid_roots))):
                 movable = [c for c in kid_roots if c not in own_pose]
@@ -366,6 +431,9 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
 
     roots = [n for n in names if seg_root[n] == n]
     index = {r: i for i, r in enumerate(roots)}
+    pooled = {r: 0 for r in roots}
+    for b in marker_bones:
+        pooled[seg_root[b]] += 1
     segs = []
     for r in roots:
         members = [r] + [n for n in names if seg_root[n] == r and n != r]
@@ -378,13 +446,19 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
         if j is not None:
             j_self = skeleton.bones[r].joint_centres[j]
             P = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, skeleton.bones[pb].bone_to_world)
-            j_par = P[:3, :3] @ skeleton.bones[pb].joint_centres[j] + P[:3, 3]
+            j_par = P[:3, :3] @ skeleton.bones[pb].joint_centres[parent_joint_key(skeleton, r, j)] + P[:3, 3]
             a_self = axis[r] if r in hinged else None
             if a_self is not None:
                 # the same line in the parent segment's frame at the reference pose
                 a_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world[:3, :3],
                                         skeleton.bones[r].bone_to_world[:3, :3] @ a_self)
-        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest, a_self, a_par))
+        pr_self = pr_par = None
+        if j is not None and _base(j) in GIRDLE_JOINTS and pooled[r] < 2:
+            pr_self = _girdle_prior_point(skeleton, r, members, j_self)
+            if pr_self is not None:
+                pr_world = T_r[:3, :3] @ pr_self + T_r[:3, 3]
+                pr_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, np.r_[pr_world, 1.0])[:3]
+        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest, a_self, a_par, pr_self, pr_par))
     return SegmentPlan(segs, {n: index[seg_root[n]] for n in names})
 
 
@@ -522,7 +596,8 @@ def _newton(T: np.ndarray, var: Sequence[int], segs: Sequence[Segment], seg_loca
     """Levenberg-Marquardt on the poses of the segments ``var`` at once, in place on ``T`` (S, F, 4, 4).
 
     The objective is the sweeps' (module docstring): the markers' weighted squares plus each
-    joint's pair of centres (and a hinge's lever points) pulled together with ``joint_weight``.
+    joint's pair of centres (and a hinge's lever points) pulled together with ``joint_weight``
+    (a girdle's prior point with its share of it, :meth:`Segment.link_weights`).
     Each segment's pose is updated by a small turn ``w`` about its origin and a shift ``t``
     (``p -> p + w x (p - o) + t``), every segment's at once: the normal equations are 6 rows per
     segment, solved per frame (dense: for the few frames of a static trial). The sweeps converge
@@ -538,8 +613,9 @@ def _newton(T: np.ndarray, var: Sequence[int], segs: Sequence[Segment], seg_loca
     col = {s: i for i, s in enumerate(var)}
     n = 6 * len(var)
     ident = np.eye(3)
-    links = [(s, segs[s].parent, a, b) for s in range(S_all) if segs[s].parent >= 0
-             and (s in col or segs[s].parent in col) for a, b in segs[s].links()]
+    links = [(s, segs[s].parent, a, b, wl) for s in range(S_all) if segs[s].parent >= 0
+             and (s in col or segs[s].parent in col)
+             for (a, b), wl in zip(segs[s].links(), segs[s].link_weights(joint_weight))]
 
     def evaluate(T, want_normal=True):
         cost = np.zeros(F)
@@ -571,10 +647,10 @@ def _newton(T: np.ndarray, var: Sequence[int], segs: Sequence[Segment], seg_loca
             cost += np.einsum("fk,fk->f", w, (r * r).sum(-1))
             if want_normal:
                 add(s, P - T[s][:, None, :3, 3], r, w)
-        for s, p, a, b in links:
+        for s, p, a, b, wl in links:
             pa, pb = _apply(T[s], a), _apply(T[p], b)
             good = np.isfinite(pa).all(1) & np.isfinite(pb).all(1)
-            w = np.where(good, joint_weight, 0.0)[:, None]
+            w = np.where(good, wl, 0.0)[:, None]
             r = np.where(good[:, None], pa - pb, 0.0)[:, None]
             cost += w[:, 0] * (r[:, 0] ** 2).sum(-1)
             if not want_normal:
@@ -948,10 +1024,12 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
             seg = segs[s_]
             Q, Wt = bufs[s_]
             slot = len(seg_markers[s_])
-            pseudo = [(Tb[seg.parent], p_par, joint_weight) for _, p_par in seg.links()]
+            pseudo = [(Tb[seg.parent], p_par, wj)
+                      for (_, p_par), wj in zip(seg.links(), seg.link_weights(joint_weight))]
             for c in children[s_]:
-                wc = 0.0 if segs[c].root in fixed else joint_weight
-                pseudo += [(Tb[c], p_self, wc) for p_self, _ in segs[c].links()]
+                wc = 0.0 if segs[c].root in fixed else 1.0
+                pseudo += [(Tb[c], p_self, wc * wj)
+                           for (p_self, _), wj in zip(segs[c].links(), segs[c].link_weights(joint_weight))]
             for Tn, point, wj in pseudo:
                 target = _apply(Tn, point)
                 good = np.isfinite(target).all(axis=1)

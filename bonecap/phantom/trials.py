@@ -79,8 +79,17 @@ OpenSim ``PinJoint``: elbow, ankle) its own axis replaces the world-derived
 flexion axis (same sense), and the other two are re-orthogonalised.
 
 Bones not in the table follow their parent (zero joint rotation): fibula,
-calcaneus, foot, vertebrae above the lumbar joint, ribs, sternum, clavicles,
-scapulae, skull, mandible, carpals and rays below the wrist. Two extra rules:
+calcaneus, foot, vertebrae above the lumbar joint, ribs, sternum, skull,
+mandible, carpals and rays below the wrist. Three extra rules:
+the **shoulder girdle** follows the arm (scapulohumeral rhythm,
+:data:`GIRDLE_RHYTHM`): for a humerus raised ``E`` degrees from the thorax's
+downward axis the clavicle rises by 0.12 E and retracts by 0.12 E at the
+sternoclavicular joint and the scapula turns upward by 0.2 E at the
+acromioclavicular joint (the scapula ~0.3 E on the thorax: Inman's 2:1), the
+humerus keeping the orientation its shoulder angles give it relative to the
+thorax while the girdle carries its centre (at 150 deg the acromion moves
+~70 mm, the shoulder centre ~80 mm; an OpenSim model without clavicles has
+no girdle);
 the **patella**, when it hangs from the femur, turns about the knee flexion
 axis through the knee centre by 0.7 x knee flexion (it rides the trochlea; its
 joint centre then slides on the femur by design); the **radius** is driven by
@@ -213,7 +222,8 @@ from bonecap.skeleton.kinematics import pose_skeleton, proximal_joint
 from bonecap.skeleton.template import MODEL_TO_LAB_ZUP
 
 __all__ = [
-    "TRIAL_NAMES", "RATE_HZ", "STA_AMPLITUDE_MM", "JointSpec", "ForearmSpec", "JointTable",
+    "TRIAL_NAMES", "RATE_HZ", "STA_AMPLITUDE_MM", "GIRDLE_RHYTHM", "JointSpec", "GirdleSpec", "ForearmSpec",
+    "JointTable", "girdle_angles",
     "anatomical_frame", "reference_pose_offsets", "joint_table", "TrialMotion", "trial_motion", "pose_trial", "forearm_motion",
     "MarkerBinding", "place_phantom_markers", "sta_class", "SoftTissueModel", "build_sta_model",
     "PhantomTrial", "synthesize_trials", "make_trials",
@@ -322,6 +332,8 @@ _CANDIDATES = {
     "ulna": ("ulna_{s}",),
     "radius": ("radius_{s}",),
     "hand": ("hand_{s}", "carpals_{s}"),
+    "clavicle": ("clavicle_{s}",),
+    "scapula": ("scapula_{s}",),
 }
 _LUMBAR_CANDIDATES = ("torso", "l5", "lumbar5", "l4", "thorax")
 
@@ -411,6 +423,131 @@ class JointSpec:
     neutral: np.ndarray = field(default_factory=lambda: np.eye(3))
 
 
+#: The shoulder girdle's share of the arm's elevation (the scapulohumeral rhythm), per degree of the
+#: humerus's elevation from the thorax's downward axis: the clavicle rises and retracts at the
+#: sternoclavicular joint and the scapula turns upward at the acromioclavicular joint. Over 0-120 deg
+#: of elevation the clavicle rises ~10-15 deg and retracts ~15-20 deg and the scapula turns upward by
+#: ~35-40 deg relative to the thorax (Ludewig et al. 2009; Inman et al. 1944's 2:1 glenohumeral to
+#: scapulothoracic ratio); the acromion moves by centimetres.
+GIRDLE_RHYTHM = {"clavicle_elevation": 0.12, "clavicle_retraction": 0.12, "scapula_upward_rotation": 0.2}
+
+
+@dataclass(frozen=True)
+class GirdleSpec:
+    """A shoulder girdle that follows the arm's elevation (:data:`GIRDLE_RHYTHM`).
+
+    Attributes
+    ----------
+    side : int
+        +1 right, -1 left.
+    sternum, clavicle, scapula, humerus : str
+        The bones: the clavicle turns on the sternum, the scapula on the clavicle; the humerus keeps
+        the orientation its shoulder angles give it relative to the thorax and is carried to where the
+        scapula puts the shoulder joint.
+    sc_centre : ndarray (3,)
+        The sternoclavicular joint centre in the sternum's frame (mm).
+    ac_centre : ndarray (3,)
+        The acromioclavicular joint centre in the clavicle's frame (mm).
+    elevation_axis, retraction_axis : ndarray (3,)
+        Unit axes in the sternum's frame: turning about them by a positive angle lifts / draws back
+        the clavicle's lateral end.
+    upward_axis : ndarray (3,)
+        Unit axis in the clavicle's frame: a positive turn about it turns the scapula upward
+        (glenoid up, inferior angle lateral).
+    shoulder_in_humerus : ndarray (3,)
+        The shoulder joint centre in the humerus's frame (mm).
+    """
+
+    side: int
+    sternum: str
+    clavicle: str
+    scapula: str
+    humerus: str
+    sc_centre: np.ndarray
+    ac_centre: np.ndarray
+    elevation_axis: np.ndarray
+    retraction_axis: np.ndarray
+    upward_axis: np.ndarray
+    shoulder_in_humerus: np.ndarray
+
+
+def _girdle_spec(skeleton: Skeleton, side: str, anat: np.ndarray) -> GirdleSpec | None:
+    """The girdle of one side, or None where the skeleton has none (an OpenSim model's arm hangs on the
+    thorax): a clavicle whose parent lists the sternoclavicular joint, a scapula on the clavicle at the
+    acromioclavicular joint, a humerus on the scapula."""
+    clavicle, scapula = _find_bone(skeleton, "clavicle", side), _find_bone(skeleton, "scapula", side)
+    humerus = _find_bone(skeleton, "humerus", side)
+    if clavicle is None or scapula is None or humerus is None:
+        return None
+    bc, bs, bh = skeleton.bones[clavicle], skeleton.bones[scapula], skeleton.bones[humerus]
+    if bs.parent != clavicle or bh.parent != scapula or bc.parent is None:
+        return None
+    st = skeleton.bones[bc.parent]
+    sc = bc.joint_centres.get("sternoclavicular")
+    ac = bc.joint_centres.get("acromioclavicular")
+    try:
+        _, _, gh = proximal_joint(skeleton, humerus)
+    except ValueError:
+        return None
+    if sc is None or ac is None:
+        return None
+    sign = 1.0 if side == "r" else -1.0
+    R_st, R_cl = st.bone_to_world[:3, :3], bc.bone_to_world[:3, :3]
+    sc_world = _apply(bc.bone_to_world, sc)
+    # lateral is +right for the right side: a turn about -anterior lifts it, about -superior draws it back
+    return GirdleSpec(side=int(sign), sternum=bc.parent, clavicle=clavicle, scapula=scapula, humerus=humerus,
+                      sc_centre=_apply(np.linalg.inv(st.bone_to_world), sc_world), ac_centre=np.asarray(ac, float),
+                      elevation_axis=R_st.T @ (-sign * anat[:, 0]), retraction_axis=R_st.T @ (-sign * anat[:, 1]),
+                      upward_axis=R_cl.T @ (-sign * anat[:, 0]), shoulder_in_humerus=np.asarray(gh, float))
+
+
+def girdle_angles(table: "JointTable", angles: Mapping[str, np.ndarray], side: str) -> dict[str, np.ndarray]:
+    """The girdle's angles (deg, (F,) each, keys of :data:`GIRDLE_RHYTHM`) for a side's shoulder angles.
+
+    The humerus's elevation is the angle between its long axis and the thorax's downward axis for the
+    anatomical shoulder angles (flexion and abduction both raise it); the girdle takes
+    :data:`GIRDLE_RHYTHM` of it."""
+    spec = table.joints[f"shoulder_{side}"]
+    a = np.atleast_2d(np.asarray(angles.get(f"shoulder_{side}", np.zeros((1, 3))), float))
+    # the rotation axis is the superior one times the side (_AXES): the humerus's long axis points down
+    down = -spec.axes[2] * spec.side
+    cosE = np.einsum("fij,j,i->f", _angles_to_matrix(spec.axes, a), down, down)
+    E = np.degrees(np.arccos(np.clip(cosE, -1.0, 1.0)))
+    return {k: c * E for k, c in GIRDLE_RHYTHM.items()}
+
+
+def _move_girdles(T: np.ndarray, skeleton: Skeleton, table: "JointTable", angles: Mapping[str, np.ndarray],
+                  kids: dict[str, list[str]]) -> None:
+    """Turn each girdle by the rhythm (in place on ``T`` (F, B, 4, 4)), the arm carried with it: the
+    humerus keeps its orientation, its shoulder centre goes where the scapula puts it."""
+    index = {n: i for i, n in enumerate(skeleton.names)}
+    F = T.shape[0]
+    for s, g in table.girdles.items():
+        if not all(b in index for b in (g.sternum, g.clavicle, g.scapula, g.humerus)) \
+                or f"shoulder_{s}" not in table.joints:
+            continue
+        ga = {k: np.broadcast_to(v, (F,)) for k, v in girdle_angles(table, angles, s).items()}
+        if not np.any([np.any(v) for v in ga.values()]):
+            continue
+        B = skeleton.bones
+        rest_c = np.linalg.solve(B[g.sternum].bone_to_world, B[g.clavicle].bone_to_world)
+        rest_s = np.linalg.solve(B[g.clavicle].bone_to_world, B[g.scapula].bone_to_world)
+        Rc = _rotvec_matrices(g.elevation_axis, np.radians(ga["clavicle_elevation"])) \
+            @ _rotvec_matrices(g.retraction_axis, np.radians(ga["clavicle_retraction"]))
+        Rs = _rotvec_matrices(g.upward_axis, np.radians(ga["scapula_upward_rotation"]))
+        H = T[:, index[g.humerus]].copy()
+        gh_before = _apply(H, g.shoulder_in_humerus)
+        for bone, parent, R, c, rest in ((g.clavicle, g.sternum, Rc, g.sc_centre, rest_c),
+                                         (g.scapula, g.clavicle, Rs, g.ac_centre, rest_s)):
+            J = np.tile(np.eye(4), (F, 1, 1))
+            J[:, :3, :3] = R
+            J[:, :3, 3] = c - R @ c
+            _apply_subtree_correction(T, index, _subtree(skeleton, bone, kids), bone, T[:, index[parent]] @ J @ rest)
+        # the arm's orientation stays the one its angles give relative to the thorax
+        H[:, :3, 3] += _apply(T[:, index[g.humerus]], g.shoulder_in_humerus) - gh_before
+        _apply_subtree_correction(T, index, _subtree(skeleton, g.humerus, kids), g.humerus, H)
+
+
 @dataclass(frozen=True)
 class ForearmSpec:
     """The radio-ulnar joint of one forearm (see the module documentation).
@@ -462,6 +599,8 @@ class JointTable:
         Per side, the bones from the ankle down (floor contact).
     hands : dict of str -> str
         Per side, the bone below the wrist (hand_r / carpals_r).
+    girdles : dict of str -> GirdleSpec
+        Per side, the shoulder girdle that follows the arm's elevation (skeletons with clavicles).
     """
 
     joints: dict[str, JointSpec]
@@ -472,6 +611,7 @@ class JointTable:
     patellae: dict[str, tuple[str, str]] = field(default_factory=dict)
     feet: dict[str, list[str]] = field(default_factory=dict)
     hands: dict[str, str] = field(default_factory=dict)
+    girdles: dict[str, GirdleSpec] = field(default_factory=dict)
 
     def describe(self) -> dict[str, Any]:
         """A JSON-able description (bones, parent, axes in the parent frame)."""
@@ -711,8 +851,13 @@ def _table_from(skeleton: Skeleton, offsets: Mapping[str, np.ndarray]) -> JointT
         pelvis_centre = np.mean(hip_centres, axis=0)
     else:
         pelvis_centre = skeleton.bones[root].bone_to_world[:3, 3].copy()
+    girdles = {}
+    for s in "rl":
+        g = _girdle_spec(skeleton, s, anat) if f"shoulder_{s}" in joints else None
+        if g is not None:
+            girdles[s] = g
     return JointTable(joints=joints, forearms=forearms, anat=anat, root=root, pelvis_centre=pelvis_centre,
-                      patellae=patellae, feet=feet, hands=hands)
+                      patellae=patellae, feet=feet, hands=hands, girdles=girdles)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1039,6 +1184,7 @@ def _pose_core(skeleton: Skeleton, table: JointTable, angles: Mapping[str, np.nd
     names = skeleton.names
     index = {n: i for i, n in enumerate(names)}
     kids = _children(skeleton)
+    _move_girdles(T, skeleton, table, angles, kids)
     extra: dict[str, np.ndarray] = {}
     F = T.shape[0]
     for s, (patella, knee) in table.patellae.items():

@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["joint_groups", "proximal_joint", "pose_skeleton", "subtree", "turn_about", "PIVOT_JOINTS", "HINGE_JOINTS"]
+__all__ = ["joint_groups", "proximal_joint", "joint_pair", "parent_joint_key", "pose_skeleton", "subtree", "turn_about", "PIVOT_JOINTS",
+           "HINGE_JOINTS", "GIRDLE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
@@ -46,6 +47,14 @@ PIVOT_JOINTS = ("proximal_radioulnar",)
 #: OpenSim model), only where it declares the joint with one coordinate (its pin joints); the
 #: embedded skeleton declares none and takes these as the hinges anatomy makes them.
 HINGE_JOINTS = ("elbow", "radioulnar")
+
+#: Joints by which a shoulder girdle (clavicle and scapula) hangs on the thorax, by name without
+#: the side suffix. The acromion marker rides on the girdle, and the girdle does not ride rigidly on
+#: the thorax: with the arm's elevation the scapula turns upward and the clavicle rises (the
+#: scapulohumeral rhythm, Inman et al. 1944; clavicle elevation and retraction, de Groot & Brand
+#: 2001), and the acromion moves by centimetres. A girdle with a marker gets a pose of its own
+#: (:func:`bonecap.motion.lsq.plan_segments`).
+GIRDLE_JOINTS = ("sternoclavicular",)
 
 
 def joint_groups(skeleton: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str, str]]]:
@@ -153,6 +162,40 @@ def proximal_joint(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) ->
                          f"they share {shared or 'none'}")
     name = shared[0]
     return name, parent.joint_centres[name], b.joint_centres[name]
+
+
+def joint_pair(skeleton: Skeleton, bone: str, pivots: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray] | None:
+    """The joint centre tying ``bone`` to its parent as ``(centre_in_parent, centre_in_child)``, or None.
+
+    :func:`proximal_joint`'s joint, or else a girdle joint (:data:`GIRDLE_JOINTS`) that the parent
+    lists once per side: the embedded skeleton's sternum has ``sternoclavicular_r`` and
+    ``sternoclavicular_l``, each clavicle its ``sternoclavicular``. None for the root and for a bone
+    that meets its parent at no named joint (it rides on the parent).
+    """
+    b = skeleton.bones[bone]
+    if b.parent is None:
+        return None
+    try:
+        _, c_parent, c_child = proximal_joint(skeleton, bone, pivots)
+        return c_parent, c_child
+    except ValueError:
+        pass
+    for name in GIRDLE_JOINTS:
+        key = parent_joint_key(skeleton, bone, name) if name in b.joint_centres else None
+        if key is not None:
+            return skeleton.bones[b.parent].joint_centres[key], b.joint_centres[name]
+    return None
+
+
+def parent_joint_key(skeleton: Skeleton, bone: str, joint: str) -> str | None:
+    """The name under which ``bone``'s parent lists the joint ``joint``: the same, or with the bone's
+    side suffix (the sternum's ``sternoclavicular_r`` for the right clavicle's ``sternoclavicular``);
+    None when the parent does not list it."""
+    parent = skeleton.bones[skeleton.bones[bone].parent]
+    if joint in parent.joint_centres:
+        return joint
+    side = bone[-2:] if bone.endswith(("_r", "_l")) else ""
+    return joint + side if side and joint + side in parent.joint_centres else None
 
 
 def _as_matrices(rot, n_frames: int, bone: str) -> np.ndarray:
