@@ -570,11 +570,13 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     template's proportions and the markers disagree. Binding markers to such
     a pose would bake the gaps in, and every later solve would fight them
     (a two-marker shank can flip to the wrong side of its axis doing so).
-    Each bone keeps its solved orientation; its position follows its parent
-    through the shared joint centre (:func:`bonecap.skeleton.kinematics.joint_pair`:
-    a shoulder girdle's sternoclavicular joint too, which the sternum lists per
-    side). Unsolved bones, and bones that meet their parent at no named joint,
-    keep their reference pose relative to the parent.
+    Each bone keeps its solved orientation; its position follows its parent,
+    turned about the shared joint centre from the reference relative pose as
+    :func:`bonecap.skeleton.kinematics.pose_skeleton` turns it
+    (:func:`bonecap.skeleton.kinematics.joint_pair`: a shoulder girdle's
+    sternoclavicular joint too, which the sternum lists per side). Unsolved
+    bones, and bones that meet their parent at no named joint, keep their
+    reference pose relative to the parent.
     """
     from bonecap.skeleton.kinematics import PIVOT_JOINTS, joint_pair
 
@@ -587,17 +589,22 @@ def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
             out[idx[n]] = poses[idx[n]] if solved else b.bone_to_world
             continue
         Tp = out[idx[b.parent]]
+        rest = np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)    # child -> parent
         # the radius pivots on the ulna at the radial head: without naming that pivot it would fall
         # back to its reference twist and lose the solved pronation
         pair = joint_pair(skeleton, n, PIVOT_JOINTS)
         if pair is None or not solved:
-            out[idx[n]] = Tp @ np.linalg.solve(skeleton.bones[b.parent].bone_to_world, b.bone_to_world)
+            out[idx[n]] = Tp @ rest
             continue
-        c_parent, c_child = pair
-        T = np.eye(4)
-        T[:3, :3] = poses[idx[n]][:3, :3]
-        T[:3, 3] = Tp[:3, :3] @ c_parent + Tp[:3, 3] - T[:3, :3] @ c_child
-        out[idx[n]] = T
+        # turned about the parent's copy of the joint centre from the reference relative pose, as
+        # pose_skeleton does: where the two copies of a joint centre do not meet at the reference (a
+        # personal skeleton's acromioclavicular joint 12-13 mm apart, seed 3), the gap is kept, not
+        # closed by moving the child (that moved the arm 12 mm from its markers before they were bound)
+        c_parent = pair[0]
+        J = np.eye(4)
+        J[:3, :3] = Tp[:3, :3].T @ poses[idx[n]][:3, :3] @ rest[:3, :3].T
+        J[:3, 3] = c_parent - J[:3, :3] @ c_parent
+        out[idx[n]] = Tp @ J @ rest
     return out
 
 
