@@ -218,7 +218,8 @@ def _shared_joint(skeleton: Skeleton, bone: str, joints: Mapping[str, str]) -> s
     shared = [n for n in b.joint_centres if n in parent.joint_centres]
     if not shared:
         # a girdle's joint, which the parent lists once per side (the sternum's "sternoclavicular_r")
-        shared = [n for n in b.joint_centres if n in GIRDLE_JOINTS and parent_joint_key(skeleton, bone, n) is not None]
+        shared = [n for n in b.joint_centres
+                  if n in GIRDLE_JOINTS and parent_joint_key(skeleton, bone, n) is not None]
     if len(shared) <= 1:
         return shared[0] if shared else None
     for name in _PREFERRED_JOINTS:

@@ -473,8 +473,8 @@ class GirdleSpec:
 
 def _girdle_spec(skeleton: Skeleton, side: str, anat: np.ndarray) -> GirdleSpec | None:
     """The girdle of one side, or None where the skeleton has none (an OpenSim model's arm hangs on the
-    thorax): a clavicle whose parent lists the sternoclavicular joint, a scapula on the clavicle at the
-    acromioclavicular joint, a humerus on the scapula."""
+    thorax): a clavicle with its sternoclavicular and acromioclavicular centres under a parent (the
+    sternum), a scapula on the clavicle, a humerus on the scapula."""
     clavicle, scapula = _find_bone(skeleton, "clavicle", side), _find_bone(skeleton, "scapula", side)
     humerus = _find_bone(skeleton, "humerus", side)
     if clavicle is None or scapula is None or humerus is None:

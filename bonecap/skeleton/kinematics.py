@@ -23,8 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from bonecap.model import Skeleton
 
-__all__ = ["joint_groups", "proximal_joint", "joint_pair", "parent_joint_key", "pose_skeleton", "subtree", "turn_about", "PIVOT_JOINTS",
-           "HINGE_JOINTS", "GIRDLE_JOINTS"]
+__all__ = ["joint_groups", "proximal_joint", "joint_pair", "parent_joint_key", "pose_skeleton", "subtree",
+           "turn_about", "PIVOT_JOINTS", "HINGE_JOINTS", "GIRDLE_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
