@@ -237,10 +237,7 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
 
     The parent's axis is preferred, carried into the bone's frame at the reference pose, so that
     both copies are one line there; a bone's own axis serves when the parent gives none."""
-    if joint is None:
-        return None
-    base = joint[:-2] if joint.endswith(("_r", "_l")) else joint
-    if base not in HINGE_JOINTS:
+    if _base(joint) not in HINGE_JOINTS:
         return None
     # A template that declares its joints (an OpenSim model) has a hinge only where it models the
     # joint with one coordinate. The embedded skeleton declares none: its elbow is the hinge anatomy
