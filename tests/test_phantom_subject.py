@@ -345,7 +345,7 @@ def test_slab_marching_cubes_equals_the_whole_grid(monkeypatch):
 def test_body_smoothing_and_decimation_helpers_match_the_libraries(tmp_path, monkeypatch):
     """``_taubin`` is trimesh's equal-weight Taubin filter; ``_decimate`` in a child process returns
     what fast_simplification and trimesh's processing return in this one (the body meshes must not
-    depend on where it ran); with BONECAP_WORKERS=1 it runs here."""
+    depend on where it ran); with BONECAP_WORKERS=1 or ``lean=False`` it runs here."""
     import os
 
     import fast_simplification
@@ -378,11 +378,13 @@ def test_body_smoothing_and_decimation_helpers_match_the_libraries(tmp_path, mon
     b = subj._decimate(v32, f, 0.7)
     assert len(b[1]) < 0.4 * len(f)
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    d = subj._decimate(v32, f, 0.7, lean=False)                  # (the tiny preset: here, same result)
+    assert np.array_equal(a[0], d[0]) and np.array_equal(a[1], d[1])
     monkeypatch.setenv("BONECAP_WORKERS", "1")
     c = subj._decimate(v32, f, 0.7)
     assert np.array_equal(a[0], c[0]) and np.array_equal(a[1], c[1])
-    child, here = (int(x) for x in pids.read_text().split())
-    assert child != os.getpid() and here == os.getpid()
+    child, here_not_lean, here = (int(x) for x in pids.read_text().split())
+    assert child != os.getpid() and here_not_lean == here == os.getpid()
 
 
 def test_a_fin_folded_by_the_decimation_is_dropped_and_the_mesh_closes():

@@ -196,6 +196,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     from bonecap.phantom.mri import (CAPSULE_DIAMETER_MM, FOREARM_EXTEND_MM, ForearmPose, capsule_meshes,
                                      icosphere, plan_stations, render_forearm_stacks, render_stations,
                                      write_merged_labels)
+    from bonecap.phantom.subject import PRESETS as SUBJECT_PRESETS
     from bonecap.phantom.subject import make_subject, release_memory
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
@@ -205,6 +206,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     if stature_mm is not None and not 1000.0 <= stature_mm <= 2300.0:
         raise InputError(f"stature must be between 1.0 and 2.3 m, got {stature_mm / 1000:g} m")
     cfg = PRESETS[preset]
+    # memory handed back between stages only where it is worth its time (see subject.PRESETS)
+    tidy = release_memory if SUBJECT_PRESETS[preset].get("lean", True) else (lambda: None)
     out = Path(out_dir)
     truth = out / "truth"
     rng = np.random.default_rng(seed)
@@ -264,7 +267,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
                                                          capsule_truth["capsule_radius_mm"]))
 
     # 2. Whole-body stations.
-    release_memory()
+    tidy()
     t0 = time.perf_counter()
     bar.set_postfix_str("stations")
     plans = plan_stations(layers[0][0], n_stations=cfg["n_stations"], pixel_mm=cfg["pixel_mm"],
@@ -289,7 +292,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 3. Forearm stacks at the paper's twists.
-    release_memory()
+    tidy()
     t0 = time.perf_counter()
     bar.set_postfix_str("forearm")
     poses, forearm_truth = {}, {}
@@ -353,7 +356,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 4. Trials (started beside the MRI above).
-    release_memory()
+    tidy()
     t0 = time.perf_counter()
     bar.set_postfix_str("trials")
     trials, timings["trials"] = trials_job()
@@ -361,7 +364,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.update()
 
     # 5. The rest of the truth.
-    release_memory()
+    tidy()
     t0 = time.perf_counter()
     bar.set_postfix_str("truth")
     meshes_dir = truth / "meshes"

@@ -255,12 +255,15 @@ STATURE_RANGE = (1632.0, 1768.0)
 #: ``tiny`` is for tests and quick looks: a 6 mm grid (margins over the bones widened to >= 0.8 x the
 #: spacing so that the coarse meshes still enclose them), coarse meshes. ``mesh_at_once``: how many
 #: bones of the skeleton are meshed at the same time (default preset: one, for its memory target;
-#: two workers with their grids held ~360 MiB with this process; ~8 s longer on 2 cores).
+#: two workers with their grids held ~360 MiB with this process; ~8 s longer on 2 cores). ``lean``:
+#: memory is handed back between stages (:func:`release_memory`) and large decimations run in child
+#: processes (:func:`_decimate`); the tiny preset, a few tens of MB, skips both (~2.5 s of its ~14,
+#: 2026-11-28: every child imported trimesh again; the results are the same either way).
 PRESETS: dict[str, dict[str, float]] = {
     "default": {"spacing": 3.5, "sample_spacing": 2.0, "skin_faces": 200_000, "muscle_faces": 200_000,
-                "taubin_iterations": 10, "mesh_at_once": 1},
+                "taubin_iterations": 10, "mesh_at_once": 1, "lean": True},
     "tiny": {"spacing": 6.0, "sample_spacing": 3.5, "skin_faces": 20_000, "muscle_faces": 20_000,
-             "taubin_iterations": 6, "bone_resolution": 3.5},
+             "taubin_iterations": 6, "bone_resolution": 3.5, "lean": False},
 }
 
 _F_MIN = 1.5      # minimum fat (skin to fascia) thickness, mm
@@ -2283,7 +2286,8 @@ def _taubin(V: np.ndarray, F: np.ndarray, lamb: float, nu: float, iterations: in
 _SIMPLIFY_IN_CHILD_FACES = 100_000
 
 
-def _decimate(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarray, np.ndarray]:
+def _decimate(v: np.ndarray, f: np.ndarray, reduction: float, *,
+              lean: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """``fast_simplification.simplify(v, f, target_reduction=reduction)``, then trimesh's processing:
     ``(verts float64, faces int64)``; large meshes in a child process.
 
@@ -2300,8 +2304,10 @@ def _decimate(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
     dependencies trimesh held ~21 MiB in this process to the end, on the peaks of
     the MRI rendering, and beside the decimation's vectors in one child it made
     the process tree's peak (+13 MiB). Same algorithms and input, so the same
-    result. Where there is no ``fork``, or with ``BONECAP_WORKERS=1`` (no child
-    processes, e.g. inside a multi-threaded host), it all runs here.
+    result. Where there is no ``fork``, with ``BONECAP_WORKERS=1`` (no child
+    processes, e.g. inside a multi-threaded host), or with ``lean=False`` (a small
+    phantom: each child's import of trimesh costs more than the memory it returns),
+    it all runs here.
     """
     def simplify():
         import fast_simplification
@@ -2314,7 +2320,7 @@ def _decimate(v: np.ndarray, f: np.ndarray, reduction: float) -> tuple[np.ndarra
         tm = trimesh.Trimesh(dv, df, process=True)
         return np.asarray(tm.vertices, dtype=float), np.asarray(tm.faces, dtype=np.int64)
 
-    if len(f) <= _SIMPLIFY_IN_CHILD_FACES:
+    if not lean or len(f) <= _SIMPLIFY_IN_CHILD_FACES:
         return process(*simplify())
     from bonecap.parallel import fork_or_here
 
@@ -2420,7 +2426,8 @@ def _dense_surface(field: np.ndarray, origin: np.ndarray, h: float, taubin: int,
     return verts, faces
 
 
-def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: str) -> Mesh:
+def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: str, *,
+                    lean: bool = True) -> Mesh:
     """A :func:`_dense_surface` decimated to ``max_faces``, made watertight and wound outward.
 
     Memory (the whole-body skin at 3.5 mm: ~440 000 faces before decimation): plain
@@ -2442,7 +2449,7 @@ def _finish_surface(verts: np.ndarray, faces: np.ndarray, max_faces: int, what: 
         # folded into two coincident faces of opposite winding) dropped too, so that the meshes of the
         # phantoms that decimated before stay as they were (default seed 3's fascia had fins at all three)
         for frac, fins in ((1.0, False), (0.9, False), (0.8, False), (1.0, True), (0.9, True), (0.8, True)):
-            V_, F_ = _decimate(v32, faces, 1.0 - frac * max_faces / n_in)
+            V_, F_ = _decimate(v32, faces, 1.0 - frac * max_faces / n_in, lean=lean)
             dec = _repair_pinches(*(_drop_fins(V_, F_) if fins else (V_, F_)))
             del V_, F_
             if dec is not None:
@@ -2601,15 +2608,23 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     if preset not in PRESETS:
         raise InputError(f"unknown phantom preset {preset!r} (known: {', '.join(PRESETS)})")
     cfg = PRESETS[preset]
+    lean = bool(cfg.get("lean", True))
+    tidy = release_memory if lean else (lambda: None)
+    if not lean:
+        # the meshing libraries imported once, here: the skeleton's meshing child (forked) and the body's
+        # decimation (in this process) then both have them; the lean path keeps them out of this process
+        import fast_simplification  # noqa: F401
+        import trimesh  # noqa: F401
+        from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D  # noqa: F401
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
     t0 = time.perf_counter()
     if params is None:
         params = draw_subject_params(seed, stature_mm, generic)
     params = {**params, "preset": preset}
-    release_memory()
+    tidy()
     sk = build_subject_skeleton(params, generic)
-    release_memory()
+    tidy()
     timings["skeleton"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rng = np.random.default_rng([int(seed), 7])
@@ -2623,7 +2638,7 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     pose = _solve_pose(sk, smp, plan, params, bp["skin_noise_mm"] + 0.5 * h, rng)
     params["pose"] = pose
     timings["plan"] = time.perf_counter() - t0
-    release_memory()
+    tidy()
     # the bone samples at the MRI pose and their margins are all that is used of them from here: the
     # rest (~16 MB at the default preset) goes before the grid is filled, the others (~16 MB more)
     # before its cavities are labelled -- both the main process's peak in turn
@@ -2631,7 +2646,7 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     del smp
     S, Fat, origin, cand, bm = _fields(W, m_skin, m_mus, plan, params, h, timings)
     del W, m_skin, m_mus
-    release_memory()
+    tidy()
     S, Mu = _layers(S, Fat, cand, bm, h, timings)
     del Fat, cand, bm
     t0 = time.perf_counter()
@@ -2639,15 +2654,15 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     # child process starts beside this one (the phase held ~400 MiB with them)
     skin = _dense_surface(S, origin, h, int(cfg["taubin_iterations"]), int(cfg["skin_faces"]))
     del S
-    release_memory()
+    tidy()
     _fill_cavities(Mu, -h)
     _close_field(Mu)
     muscle = _dense_surface(Mu, origin, h, int(cfg["taubin_iterations"]), int(cfg["muscle_faces"]))
     del Mu
-    release_memory()
-    skin = _finish_surface(*skin, int(cfg["skin_faces"]), "skin")
-    muscle = _finish_surface(*muscle, int(cfg["muscle_faces"]), "fascia")
-    release_memory()
+    tidy()
+    skin = _finish_surface(*skin, int(cfg["skin_faces"]), "skin", lean=lean)
+    muscle = _finish_surface(*muscle, int(cfg["muscle_faces"]), "fascia", lean=lean)
+    tidy()
     timings["meshes"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     el = {s: plan.joints.get(f"elbow_{s}") for s in "rl"}
