@@ -8,8 +8,9 @@ proximal; ``FE`` femur, ``TI`` tibia). A user without MRI runs ``bonecap build-s
 template scaled to the static trial) and ``bonecap animate``; this script does exactly that, then compares
 ``<trial>_angles.csv`` (``femur_*`` = hip, ``tibia_*`` = knee; flexion positive) with Vicon's angles:
 RMS of the difference, its mean (a constant offset) and its standard deviation (what the offset leaves).
-Also printed: each marker group's residual (how far the solved bones put the markers from where they were)
-and the elbow's flexion against Plug-in Gait's ``ElbowAngles``.
+Also printed: each marker group's residual (how far the solved bones put the markers from where they were),
+the elbow's flexion against Plug-in Gait's ``ElbowAngles``, the ankle's against ``AnkleAngles``, and the
+foot's other turns on the shank (their ranges and the largest turn between two frames: a foot that flips).
 
 Plug-in Gait's thigh twist comes from the thigh wand marker: a wand a few degrees off turns the femur's
 frame about its long axis and knee flexion leaks into knee adduction ("cross-talk"; Baudet et al. 2014).
@@ -174,6 +175,23 @@ def main() -> None:
         st = _stats(col(f"ulna_{side.lower()}_flexion_deg"), trial.other_points[f"{side}ElbowAngles"][:, 0])
         out[f"{side}ElbowFlexion"] = st
         print(f"{side} elbow flexion vs Vicon: RMS {st['rms']:.1f}, mean {st['mean']:+.1f}, SD {st['sd']:.1f} deg")
+    # the foot on the shank: ankle flexion against Plug-in Gait's AnkleAngles, and how far the foot turns
+    # otherwise (heel and toe lie near one line with the ankle centre, so a misplaced heel marker can roll
+    # it: the frame-to-frame turn of the talus in the tibia shows a flip)
+    for side in "LR":
+        s = side.lower()
+        st = _stats(col(f"talus_{s}_flexion_deg"), trial.other_points[f"{side}AnkleAngles"][:, 0])
+        Tt, Ta = (poses["transforms"][:, bones.index(f"{b}_{s}")] for b in ("tibia", "talus"))
+        okf = np.isfinite(Tt).all(axis=(1, 2)) & np.isfinite(Ta).all(axis=(1, 2))
+        rel = Rotation.from_matrix(np.einsum("fji,fjk->fik", Tt[okf, :3, :3], Ta[okf, :3, :3]))
+        step = np.degrees((rel[1:] * rel[:-1].inv()).magnitude())
+        add, rot = col(f"talus_{s}_adduction_deg"), col(f"talus_{s}_rotation_deg")
+        out[f"{side}AnkleFlexion"] = {**st, "adduction_range_deg": [float(np.nanmin(add)), float(np.nanmax(add))],
+                                      "rotation_range_deg": [float(np.nanmin(rot)), float(np.nanmax(rot))],
+                                      "largest_frame_to_frame_turn_deg": float(step.max())}
+        print(f"{side} ankle flexion vs Vicon: RMS {st['rms']:.1f}, mean {st['mean']:+.1f}, SD {st['sd']:.1f} deg; "
+              f"foot on the shank: adduction {np.nanmin(add):.0f}..{np.nanmax(add):.0f}, rotation "
+              f"{np.nanmin(rot):.0f}..{np.nanmax(rot):.0f} deg, largest turn between frames {step.max():.1f} deg")
     (args.work / "results.json").write_text(json.dumps(out, indent=1))
     print(f"-> {args.work / 'results.json'}")
 

@@ -157,8 +157,9 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
         raise ValueError(f"weights must be {len(marker_bones)} non-negative numbers, got shape {given.shape}")
     weights = given
     for _ in range(robust_rounds + 1):
+        # (without the feet's axis hold: the static takes their roll from the shank by rule, neutral_twist)
         motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], weights=weights,
-                           max_gap_frames=0, **sweeps)
+                           max_gap_frames=0, hold_axes=False, **sweeps)
         T = motion.transforms[0]
         if not robust_rounds:
             break

@@ -245,6 +245,80 @@ def test_a_shoulder_girdle_with_its_acromion_marker_turns_on_the_thorax():
     assert r_err[:, 1].max() > 12.0 and r_err[:, 3].max() > 6.0
 
 
+def _ankle_skeleton():
+    """shank (root) -> foot at the 'ankle', whose flexion axis is the shank's y (mm, frames = world at rest)."""
+    def T(z):
+        M = np.eye(4)
+        M[2, 3] = z
+        return M
+    bones = {
+        "shank": Bone("shank", None, bone_to_world=T(500), joint_centres={"ankle": [0, 0, -400]},
+                      joint_axes={"ankle": [0, 1, 0]}),
+        "foot": Bone("foot", "shank", bone_to_world=T(100), joint_centres={"ankle": [0, 0, 0]}),
+    }
+    return Skeleton(bones, world="model")
+
+
+def test_the_ankle_holds_the_feet_turns_its_heel_and_toe_cannot_see():
+    """Heel and toe markers and the ankle centre lie near one line, so a heel marker a few centimetres
+    off its place rolls the foot about that line (a real walk's left foot turned by up to 156 deg in
+    15 frames). Two weak points on the ankle's axis hold the foot's turns other than its flexion at
+    the reference relative pose; the flexion, which moves neither, stays the markers' alone."""
+    from bonecap.motion import lsq
+
+    skel = _ankle_skeleton()
+    mb = ["shank"] * 4 + ["foot"] * 2
+    local = np.array([[60, 0, -100], [0, 60, -200], [-50, -30, -300], [40, 40, 0],
+                      [-50, 0, -50], [150, 0, -50]], float)          # heel, toe
+    plan = plan_segments(skel, mb)
+    seg = plan.segments[plan.segment_of["foot"]]
+    assert seg.hold_in_self is not None and seg.axis_in_self is None and len(seg.links()) == 3
+    assert seg.link_weights(10.0) == pytest.approx([10.0, 10.0 * lsq.AXIS_HOLD, 10.0 * lsq.AXIS_HOLD])
+    np.testing.assert_allclose(np.abs(seg.hold_in_self[:, 1]), lsq.HINGE_LEVER_MM)   # on the axis
+    np.testing.assert_allclose(seg.hold_in_parent - seg.hold_in_self, [[0, 0, -400]] * 2, atol=1e-9)
+
+    F = 40
+    t = np.linspace(0, 1, F)
+    root = np.tile(np.eye(4), (F, 1, 1))
+    root[:, :3, :3] = Rotation.from_rotvec(np.c_[0.1 * t, 0.3 * t, 0.2 * t]).as_matrix()
+    root[:, :3, 3] = np.c_[500 * t, 0 * t, 500 + 0 * t]
+
+    def markers_for(foot_rot):
+        T = pose_skeleton(skel, root, {"foot": foot_rot})
+        Tb = T[:, [skel.names.index(b) for b in mb]]
+        return T, np.einsum("fmij,mj->fmi", Tb[..., :3, :3], local) + Tb[..., :3, 3]
+
+    # flexion alone, up to 35 deg: reproduced (the hold's points do not move)
+    T, markers = markers_for(np.c_[0 * t, np.radians(35) * t, 0 * t])
+    mo = solve_lsq(skel, mb, local, markers, rate_hz=100.0)
+    assert rotation_angle_deg(mo.transforms, T)[:, 1].max() < 0.05
+
+    # the heel marker swung 90 deg about the line from the ankle to the toe and pulled to within 12 mm
+    # of that line (a marker pushed ~65 mm off its place): the foot flexed 20 deg
+    T, markers = markers_for(np.c_[0 * t, np.radians(20) * t, 0 * t])
+    foot = T[:, 1]
+    toe_f, heel_f = local[5], local[4]
+    u = toe_f / np.linalg.norm(toe_f)
+    off = heel_f - (heel_f @ u) * u
+    moved = (heel_f @ u) * u + 12.0 * np.cross(u, off / np.linalg.norm(off))
+    markers[:, 4] = np.einsum("fij,j->fi", foot[:, :3, :3], moved) + foot[:, :3, 3]
+
+    def foot_error(hold):
+        mo = solve_lsq(skel, mb, local, markers, rate_hz=100.0, hold_axes=hold)
+        return rotation_angle_deg(mo.transforms, T)[:, 1]
+
+    held, free = foot_error(True), foot_error(False)
+    assert free.max() > 45.0                       # without the hold the foot rolls to the marker
+    assert held.max() < 20.0 and held.max() < 0.3 * free.max()
+    # (a static binds its markers without it: the foot's roll is then set from the shank by rule)
+    assert plan_segments(skel, mb, hold_axes=False).segments[1].hold_in_self is None
+    from bonecap.build_subject import pose_to_static
+
+    static = pose_to_static(skel, mb, local, markers[5], converge=False)
+    free5 = solve_lsq(skel, mb, local, markers[5:6], max_gap_frames=0, hold_axes=False).transforms[0]
+    np.testing.assert_allclose(static, free5, atol=1e-9)
+
+
 def test_coupled_solver_exact_on_noise_free_ball_joints():
     skel, T, markers, _ = truth_motion()
     mo = solve_lsq(skel, MARKER_BONES, MARKER_LOCAL, markers, rate_hz=100.0)

@@ -96,7 +96,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Motion, Skeleton
-from bonecap.skeleton.kinematics import GIRDLE_JOINTS, HINGE_JOINTS, PIVOT_JOINTS, parent_joint_key
+from bonecap.skeleton.kinematics import AXIS_HOLD_JOINTS, GIRDLE_JOINTS, HINGE_JOINTS, PIVOT_JOINTS, parent_joint_key
 
 __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_markers", "DEFAULT_JOINT_WEIGHT"]
 
@@ -124,6 +124,11 @@ HINGE_LEVER_MM = 40.0
 #: weak pull holds; it is small beside the acromion marker's weight, so the marker moves the
 #: girdle (its elevation and protraction) nearly as far as it moves.
 GIRDLE_PRIOR = 0.01
+#: The hold of a joint of :data:`~bonecap.skeleton.kinematics.AXIS_HOLD_JOINTS` (the ankle) on its
+#: child's turns other than about the joint's axis, as a fraction of the joint stiffness for each
+#: of two points :data:`HINGE_LEVER_MM` either side of the centre on the axis (see
+#: :meth:`Segment.links`): the flexion about the axis moves neither, so it is the markers' alone.
+AXIS_HOLD = 0.1
 
 
 # ----------------------------------------------------------------------------- segments
@@ -155,6 +160,11 @@ class Segment:
         on its reference pose relative to the parent: one point of the girdle far from its
         joint, in this segment's frame and where it lies in the parent's at the reference
         pose, pulled together with :data:`GIRDLE_PRIOR` of the joint's stiffness.
+    hold_in_self, hold_in_parent : ndarray (2, 3) or None
+        Where ``joint`` is one of :data:`~bonecap.skeleton.kinematics.AXIS_HOLD_JOINTS` (and not
+        a hinge): two points on its axis, :data:`HINGE_LEVER_MM` either side of the centre, in
+        this segment's frame and in the parent's (the same line at the reference pose), pulled
+        together with :data:`AXIS_HOLD` of the joint's stiffness each.
     """
 
     root: str
@@ -168,11 +178,14 @@ class Segment:
     axis_in_parent: np.ndarray | None = None
     prior_in_self: np.ndarray | None = None
     prior_in_parent: np.ndarray | None = None
+    hold_in_self: np.ndarray | None = None
+    hold_in_parent: np.ndarray | None = None
 
     def links(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The points tying this segment to its parent, as (in self, in parent) pairs: the joint
         centre, for a hinge the two points :data:`HINGE_LEVER_MM` either side of it on the axis,
-        and a girdle's prior point (weighted apart, :meth:`link_weights`)."""
+        a girdle's prior point and an axis hold's two points (these weighted apart,
+        :meth:`link_weights`)."""
         if self.joint is None:
             return []
         out = [(self.joint_in_self, self.joint_in_parent)]
@@ -182,14 +195,21 @@ class Segment:
                             self.joint_in_parent + sign * HINGE_LEVER_MM * self.axis_in_parent))
         if self.prior_in_self is not None:
             out.append((self.prior_in_self, self.prior_in_parent))
+        if self.hold_in_self is not None:
+            out.extend(zip(self.hold_in_self, self.hold_in_parent))
         return out
 
     def link_weights(self, joint_weight: float) -> list[float]:
         """The weight of each of :meth:`links` (marker equivalents): ``joint_weight`` for the joint
-        and hinge points, :data:`GIRDLE_PRIOR` of it for a girdle's prior point."""
-        w = [float(joint_weight)] * len(self.links())
+        and hinge points, :data:`GIRDLE_PRIOR` of it for a girdle's prior point, :data:`AXIS_HOLD`
+        for each of an axis hold's points."""
+        if self.joint is None:
+            return []
+        w = [float(joint_weight)] * (3 if self.axis_in_self is not None else 1)
         if self.prior_in_self is not None:
-            w[-1] *= GIRDLE_PRIOR
+            w.append(float(joint_weight) * GIRDLE_PRIOR)
+        if self.hold_in_self is not None:
+            w += [float(joint_weight) * AXIS_HOLD] * len(self.hold_in_self)
         return w
 
 
@@ -247,6 +267,12 @@ def _hinge_axis(skeleton: Skeleton, bone: str, joint: str | None) -> np.ndarray 
     declared = skeleton.metadata.get("joints") or {}
     if declared and len((declared.get(joint) or {}).get("coordinates") or ()) != 1:
         return None
+    return _joint_axis(skeleton, bone, joint)
+
+
+def _joint_axis(skeleton: Skeleton, bone: str, joint: str) -> np.ndarray | None:
+    """The unit axis (in ``bone``'s frame) of the joint ``joint`` tying ``bone`` to its parent, or None:
+    the parent's ``joint_axes`` carried into the bone's frame at the reference pose, else the bone's own."""
     b = skeleton.bones[bone]
     parent = skeleton.bones[b.parent]
     if joint in parent.joint_axes:
@@ -293,7 +319,7 @@ def _is_vertebra(name: str) -> bool:
 
 def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                   segments: Mapping[str, str] | None = None, joints: Mapping[str, str] | None = None,
-                  own_pose: Sequence[str] = ()) -> SegmentPlan:
+                  own_pose: Sequence[str] = (), hold_axes: bool = True) -> SegmentPlan:
     """Cut a skeleton into rigid segments that its markers can drive.
 
     Default rule, bottom-up over the tree: a bone gets a pose of its own (is a
@@ -322,7 +348,12 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     marker) has a pose of its own, turning on the thorax at the
     sternoclavicular joint; with a single marker its turn about the line from
     the joint to the marker is held by a weak prior (:data:`GIRDLE_PRIOR`,
-    :attr:`Segment.prior_in_self`). Any
+    :attr:`Segment.prior_in_self`). A segment whose proximal joint is one of
+    :data:`~bonecap.skeleton.kinematics.AXIS_HOLD_JOINTS` (the ankle) and has an
+    axis is held weakly at its reference relative pose by two points on that
+    axis (:data:`AXIS_HOLD`, :attr:`Segment.hold_in_self`): its flexion is the
+    markers' alone, its roll about the line through heel, toe and ankle centre,
+    which they see poorly, mostly the hold's. Any
     other bone rides on its parent at the reference relative pose (a patella,
     a fibula, ribs).
 
@@ -342,6 +373,9 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     own_pose : sequence of str
         Bones that must be segment roots whatever their markers (the radius and
         ulna when the forearm model drives them).
+    hold_axes : bool, default True
+        Give the segments at :data:`~bonecap.skeleton.kinematics.AXIS_HOLD_JOINTS`
+        their axis hold (False: none).
 
     Returns
     -------
@@ -450,13 +484,22 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
                 # the same line in the parent segment's frame at the reference pose
                 a_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world[:3, :3],
                                         skeleton.bones[r].bone_to_world[:3, :3] @ a_self)
+        hold_self = hold_par = None
+        if hold_axes and j is not None and a_self is None and _base(j) in AXIS_HOLD_JOINTS:
+            ax = _joint_axis(skeleton, r, j)
+            if ax is not None:
+                ax_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world[:3, :3],
+                                         skeleton.bones[r].bone_to_world[:3, :3] @ ax)
+                lever = np.array([[HINGE_LEVER_MM], [-HINGE_LEVER_MM]])
+                hold_self, hold_par = j_self + lever * ax, j_par + lever * ax_par
         pr_self = pr_par = None
         if j is not None and _base(j) in GIRDLE_JOINTS and pooled[r] < 2:
             pr_self = _girdle_prior_point(skeleton, r, members, j_self)
             if pr_self is not None:
                 pr_world = T_r[:3, :3] @ pr_self + T_r[:3, 3]
                 pr_par = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, np.r_[pr_world, 1.0])[:3]
-        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest, a_self, a_par, pr_self, pr_par))
+        segs.append(Segment(r, tuple(members), parent, j, j_self, j_par, rest, a_self, a_par, pr_self, pr_par,
+                            hold_self, hold_par))
     return SegmentPlan(segs, {n: index[seg_root[n]] for n in names})
 
 
@@ -828,7 +871,7 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
               forearm=None, marker_labels: Sequence[str] | None = None, rate_hz: float = 100.0,
               first_frame: int = 1, segments: Mapping[str, str] | None = None,
               joints: Mapping[str, str] | None = None, progress: bool = False,
-              tol_mm: float | None = None, newton: bool = False) -> Motion:
+              tol_mm: float | None = None, newton: bool = False, hold_axes: bool = True) -> Motion:
     """Bone poses from markers by joint-coupled weighted least squares, all frames at once.
 
     Parameters
@@ -889,6 +932,12 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
         Override the segmentation and the coupling joints, see :func:`plan_segments`.
     progress : bool
         Show a progress bar over the sweeps.
+    hold_axes : bool, default True
+        Hold the turns of a foot its markers see poorly on the shank (see
+        :func:`plan_segments`). A static trial binds the markers without it:
+        its foot takes its roll from the shank by rule
+        (:func:`bonecap.build_subject.neutral_twist`), and the hold's pull on
+        the shank's and thigh's twist would come from the feet's placed markers.
 
     Returns
     -------
@@ -937,7 +986,8 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     newton = bool(newton) and tol_mm is not None and not model_bones and F <= _NEWTON_MAX_FRAMES
     sweep_tol = max(tol_mm, NEWTON_FROM_MM) if newton else tol_mm
     plan = plan_segments(skeleton, marker_bones, segments=segments, joints=joints,
-                         own_pose=model_bones + [b.replace("radius", "ulna") for b in model_bones])
+                         own_pose=model_bones + [b.replace("radius", "ulna") for b in model_bones],
+                         hold_axes=hold_axes)
     segs = plan.segments
     S = len(segs)
     children = [[c for c in range(S) if segs[c].parent == s] for s in range(S)]

@@ -197,6 +197,9 @@ References
    (shape of the sagittal gait curves used for ``walk``).
 .. [10] Wu G et al. (2002, 2005). ISB recommendation on definitions of joint
    coordinate systems. J Biomech 35:543-548; 38:981-992.
+.. [11] Leardini A, Benedetti MG, Berti L, Bettinelli D, Nativo R, Giannini S
+   (2007). Rizzoli multi-segment foot model for motion analysis. Gait Posture
+   25(3):453-462 (the rearfoot's inversion and rotation on the shank in ``walk``).
 """
 
 from __future__ import annotations
@@ -947,6 +950,11 @@ _GAIT_POINTS = {
     "ankle_flex": [(0, 0), (6, -5), (12, -2), (20, 4), (30, 7), (40, 10), (46, 9), (52, 2), (57, -8),
                    (62, -17), (67, -7), (73, 2), (80, 5), (88, 5), (100, 0)],
     "mtp_flex": [(0, 0), (40, 5), (55, 28), (62, 25), (70, 6), (78, 0), (100, 0)],
+    # the rearfoot on the shank (talocrural and subtalar together): eversion through the loading
+    # response, inversion through push-off, ~10 deg in all; internal rotation in the loading response,
+    # external in late stance (shapes after Leardini et al. 2007's rearfoot-tibia angles [11])
+    "ankle_inv": [(0, 2), (12, -4), (30, -3), (45, 0), (60, 7), (70, 4), (85, 1), (100, 2)],
+    "ankle_rot": [(0, 0), (12, 3), (35, 1), (55, -4), (65, -5), (80, -1), (100, 0)],
 }
 
 
@@ -1033,7 +1041,7 @@ def trial_motion(name: str, table: JointTable, *, duration_scale: float = 1.0, r
             gait = _gait()
             angles[f"hip_{s}"] = np.stack([gait["hip_flex"](ph), gait["hip_abd"](ph), gait["hip_rot"](ph)], 1)
             angles[f"knee_{s}"] = np.stack([gait["knee_flex"](ph), 0 * ph, 0 * ph], 1)
-            angles[f"ankle_{s}"] = np.stack([gait["ankle_flex"](ph), 0 * ph, 0 * ph], 1)
+            angles[f"ankle_{s}"] = np.stack([gait["ankle_flex"](ph), gait["ankle_inv"](ph), gait["ankle_rot"](ph)], 1)
             angles[f"mtp_{s}"] = np.stack([gait["mtp_flex"](ph), 0 * ph, 0 * ph], 1)
             # arm swings against the leg of the same side
             angles[f"shoulder_{s}"] = np.stack([5 - 15 * np.cos(2 * np.pi * ph), 8 + 0 * ph, 0 * ph], 1)

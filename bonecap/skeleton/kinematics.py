@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from bonecap.model import Skeleton
 
 __all__ = ["joint_groups", "proximal_joint", "joint_pair", "parent_joint_key", "pose_skeleton", "subtree",
-           "turn_about", "PIVOT_JOINTS", "HINGE_JOINTS", "GIRDLE_JOINTS"]
+           "turn_about", "PIVOT_JOINTS", "HINGE_JOINTS", "GIRDLE_JOINTS", "AXIS_HOLD_JOINTS"]
 
 #: Where a bone shares several joint-centre names with its parent, the one that is a
 #: true pivot. The radius shares "elbow", "proximal_radioulnar" and "distal_radioulnar"
@@ -55,6 +55,15 @@ HINGE_JOINTS = ("elbow", "radioulnar")
 #: 2001), and the acromion moves by centimetres. A girdle with a marker gets a pose of its own
 #: (:func:`bonecap.motion.lsq.plan_segments`).
 GIRDLE_JOINTS = ("sternoclavicular",)
+
+#: Joints whose child turns freely about the joint's axis (``joint_axes``) and little otherwise, and
+#: whose markers see those other turns poorly, by name without the side suffix: the ankle. The foot's
+#: heel and toe markers lie 20-60 mm from the line through them and the ankle centre, so a heel
+#: marker a few centimetres off its place (a real trial's left heel: 70-97 mm from the ankle marker in
+#: one walk, 98 in the static) rolls the foot about that line by tens of degrees; Plug-in Gait takes
+#: the foot's roll from the shank for the same reason. The solver holds the child's turns other than
+#: about the axis weakly at their reference relative pose (:func:`bonecap.motion.lsq.plan_segments`).
+AXIS_HOLD_JOINTS = ("ankle",)
 
 
 def joint_groups(skeleton: Skeleton, tol_mm: float = 2.0) -> list[list[tuple[str, str]]]:
