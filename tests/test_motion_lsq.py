@@ -12,17 +12,22 @@ from bonecap.motion.rigid import fit_rigid, rotation_angle_deg
 from bonecap.skeleton.kinematics import pose_skeleton
 
 
+def _lifted(z):
+    """A frame with the world's axes, ``z`` mm up (the test skeletons' bones at rest)."""
+    M = np.eye(4)
+    M[2, 3] = z
+    return M
+
+
 def chain_skeleton():
     """pelvis -> thigh -> shank -> foot, ball joints 'hip', 'knee', 'ankle' (mm, frames = world at rest)."""
-    def T(z):
-        M = np.eye(4)
-        M[2, 3] = z
-        return M
     bones = {
-        "pelvis": Bone("pelvis", None, bone_to_world=T(1000), joint_centres={"hip": [0, 0, -50]}),
-        "thigh": Bone("thigh", "pelvis", bone_to_world=T(950), joint_centres={"hip": [0, 0, 0], "knee": [0, 0, -400]}),
-        "shank": Bone("shank", "thigh", bone_to_world=T(550), joint_centres={"knee": [0, 0, 0], "ankle": [0, 0, -400]}),
-        "foot": Bone("foot", "shank", bone_to_world=T(150), joint_centres={"ankle": [0, 0, 0]}),
+        "pelvis": Bone("pelvis", None, bone_to_world=_lifted(1000), joint_centres={"hip": [0, 0, -50]}),
+        "thigh": Bone("thigh", "pelvis", bone_to_world=_lifted(950),
+                      joint_centres={"hip": [0, 0, 0], "knee": [0, 0, -400]}),
+        "shank": Bone("shank", "thigh", bone_to_world=_lifted(550),
+                      joint_centres={"knee": [0, 0, 0], "ankle": [0, 0, -400]}),
+        "foot": Bone("foot", "shank", bone_to_world=_lifted(150), joint_centres={"ankle": [0, 0, 0]}),
     }
     return Skeleton(bones, world="model")
 
@@ -115,10 +120,6 @@ def test_plan_segments_rules():
 def spine_skeleton():
     """sacrum -> l5 -> l4 -> t10 -> t9 -> c7 -> c6 (frames = world at rest, 100 mm apart), ball joints at the
     discs; a rib rides on t9 (the thorax)."""
-    def T(z):
-        M = np.eye(4)
-        M[2, 3] = z
-        return M
     chain = [("sacrum", None, 1000, None), ("l5", "sacrum", 1100, "l5_s1"), ("l4", "l5", 1200, "l4_l5"),
              ("t10", "l4", 1300, "t10_l4"), ("t9", "t10", 1400, "t9_t10"), ("c7", "t9", 1500, "c7_t9"),
              ("c6", "c7", 1600, "c6_c7")]
@@ -127,8 +128,8 @@ def spine_skeleton():
         jc = {} if j is None else {j: [0.0, 0.0, -50.0]}
         if i + 1 < len(chain):
             jc[chain[i + 1][3]] = [0.0, 0.0, 50.0]
-        bones[n] = Bone(n, p, bone_to_world=T(z), joint_centres=jc)
-    bones["rib9_r"] = Bone("rib9_r", "t9", bone_to_world=T(1400), joint_centres={})
+        bones[n] = Bone(n, p, bone_to_world=_lifted(z), joint_centres=jc)
+    bones["rib9_r"] = Bone("rib9_r", "t9", bone_to_world=_lifted(1400), joint_centres={})
     return Skeleton(bones, world="model")
 
 
@@ -247,14 +248,10 @@ def test_a_shoulder_girdle_with_its_acromion_marker_turns_on_the_thorax():
 
 def _ankle_skeleton():
     """shank (root) -> foot at the 'ankle', whose flexion axis is the shank's y (mm, frames = world at rest)."""
-    def T(z):
-        M = np.eye(4)
-        M[2, 3] = z
-        return M
     bones = {
-        "shank": Bone("shank", None, bone_to_world=T(500), joint_centres={"ankle": [0, 0, -400]},
+        "shank": Bone("shank", None, bone_to_world=_lifted(500), joint_centres={"ankle": [0, 0, -400]},
                       joint_axes={"ankle": [0, 1, 0]}),
-        "foot": Bone("foot", "shank", bone_to_world=T(100), joint_centres={"ankle": [0, 0, 0]}),
+        "foot": Bone("foot", "shank", bone_to_world=_lifted(100), joint_centres={"ankle": [0, 0, 0]}),
     }
     return Skeleton(bones, world="model")
 
@@ -521,17 +518,13 @@ def test_phantom_trials_against_truth(phantom):
 def arm_skeleton(elbow="elbow_r"):
     """humerus -> ulna -> radius along -z, the elbow a hinge about x (when named as one), the radius on the
     ulna at 'radioulnar_r' with its own axis along the forearm (mm, frames = world at rest)."""
-    def T(z):
-        M = np.eye(4)
-        M[2, 3] = z
-        return M
     bones = {
-        "humerus_r": Bone("humerus_r", None, bone_to_world=T(1400),
+        "humerus_r": Bone("humerus_r", None, bone_to_world=_lifted(1400),
                           joint_centres={elbow: [0, 0, -300]}, joint_axes={elbow: [1, 0, 0]}),
-        "ulna_r": Bone("ulna_r", "humerus_r", bone_to_world=T(1100),
+        "ulna_r": Bone("ulna_r", "humerus_r", bone_to_world=_lifted(1100),
                        joint_centres={elbow: [0, 0, 0], "radioulnar_r": [0, 25, -10]},
                        joint_axes={elbow: [1, 0, 0], "radioulnar_r": [0, 0, 1]}),
-        "radius_r": Bone("radius_r", "ulna_r", bone_to_world=T(1090),
+        "radius_r": Bone("radius_r", "ulna_r", bone_to_world=_lifted(1090),
                          joint_centres={"radioulnar_r": [0, 25, 0]}, joint_axes={"radioulnar_r": [0, 0, 1]}),
     }
     # one-coordinate joints, as an OpenSim model declares its pin joints
