@@ -164,9 +164,8 @@ def solve_trial(subject: Subject, names: list[str], measured: np.ndarray, *, rat
 MARKER_OFF_MM = 20.0
 
 
-def markers_off_their_bones(skeleton: Skeleton, marker_bones: Sequence[str], marker_local: np.ndarray,
-                            measured: np.ndarray, motion: Motion, *,
-                            threshold_mm: float = MARKER_OFF_MM) -> dict[str, dict[str, Any]]:
+def markers_off_their_bones(marker_bones: Sequence[str], marker_local: np.ndarray, measured: np.ndarray,
+                            motion: Motion, *, threshold_mm: float = MARKER_OFF_MM) -> dict[str, dict[str, Any]]:
     """Markers that stay far from where their solved bones put them through a trial.
 
     For each marker the residual ``measured - bone_to_lab @ local`` is taken in
@@ -182,9 +181,8 @@ def markers_off_their_bones(skeleton: Skeleton, marker_bones: Sequence[str], mar
 
     Parameters
     ----------
-    skeleton : Skeleton
     marker_bones : sequence of str
-        Each marker's bone.
+        Each marker's bone (one of ``motion.bones``).
     marker_local : ndarray (M, 3)
         Each marker in its bone's frame (mm).
     measured : ndarray (F, M, 3)
@@ -208,6 +206,9 @@ def markers_off_their_bones(skeleton: Skeleton, marker_bones: Sequence[str], mar
                          f"({len(marker_bones)}, 3), got {meas.shape} and {local.shape}")
     labels = list(motion.marker_labels or [f"marker_{i}" for i in range(len(marker_bones))])
     index = {b: i for i, b in enumerate(motion.bones)}
+    unknown = sorted(set(marker_bones) - set(index))
+    if unknown:
+        raise ValueError(f"markers are bound to bones the motion does not have: {unknown}")
     out: dict[str, dict[str, Any]] = {}
     for m, (bone, p) in enumerate(zip(marker_bones, local)):
         T = motion.transforms[: len(meas), index[bone]]
@@ -451,7 +452,7 @@ def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike],
         t_solve = time.perf_counter() - t0
         paths = write_outputs(out, path.stem, subject, trial, motion)
         _, bones_m, local_m = subject.marker_arrays(names)
-        off = markers_off_their_bones(subject.skeleton, bones_m, local_m, measured, motion)
+        off = markers_off_their_bones(bones_m, local_m, measured, motion)
         report["trials"][path.stem] = {
             "source": str(path), "frames": trial.n_frames, "rate_hz": trial.rate,
             "markers_used": len(names), "markers_missing": missing,
