@@ -692,7 +692,8 @@ def test_capsule_markers_keep_their_mri_binding_unless_the_static_refutes_it(mon
     markers sit up to 8 mm (5 mm along each axis) from where the marker set's landmarks put them, the capsule finder sees them
     there, the static is the subject standing as it lay. Each capsule marker keeps its MRI binding, exact,
     except on a segment whose capsules the static refutes -- the right hand's, found as a hand lying 25
-    deg turned and 10 mm aside in the MRI would show them -- which is bound from the static."""
+    deg turned and 10 mm aside in the MRI would show them -- which is bound from the static. A segment the
+    scan measured (the left upper arm) keeps its capsules even where the static does not fit them."""
     from scipy.spatial.transform import Rotation
 
     import bonecap.segmentation.capsules as capsules_mod
@@ -718,12 +719,17 @@ def test_capsule_markers_keep_their_mri_binding_unless_the_static_refutes_it(mon
     # the capsule finder sees a capsule under each marker (its marker-minus-capsule radius outward left out)
     monkeypatch.setattr(capsules_mod, "find_capsules", lambda vol: (np.array([shown[n] for n in names]), None))
     monkeypatch.setattr("bonecap.build_mri.capsules_to_markers", lambda found, skin: found)
-    static = Trial(labels=list(names), points=np.array([[true[n] for n in names]] * 3)
+    # the left upper arm's markers stand 9 mm off in the static (where a rigid model cannot follow the
+    # soft tissue): the scan measured that segment, so its capsules stay, the static's misfit reported
+    arm = [n for n in names if mset.markers[n].bone == "humerus_l"]
+    standing = {n: true[n] + (np.array([0.0, 0.0, -9.0]) if n in arm else 0.0) for n in names}
+    static = Trial(labels=list(names), points=np.array([[standing[n] for n in names]] * 3)
                    + rng.normal(0.0, 0.5, (3, len(names), 3)), rate=100.0)
     subject = Subject(skeleton=sk, skin=None, marker_set=mset.name)
     report = _place_and_bind(subject, mset, [object()], None, static, "static.c3d")
     assert sorted(report["capsules_matched"]) == sorted(names)
     assert report["capsule_segments_bound_from_static"] == ["carpals_r"]
+    assert report["capsule_segments_refuted_but_scanned"] == ["humerus_l"] and len(arm) >= 3
     assert report["capsule_static_rms_mm"]["carpals_r"] > 5.0
     kept = [n for n, m in subject.markers.items() if m.source == "capsule"]
     assert sorted(kept) == sorted(set(names) - set(hand))
