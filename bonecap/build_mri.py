@@ -1494,8 +1494,8 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     ``functional``: ``(trial, path)`` of movement trials whose knee flexion corrects the femurs' twist
     (:func:`bonecap.build_subject.knee_flexion_twist`). ``capsule_search``: the join of
     :func:`_station_capsules` of ``vols`` started earlier (else the stations are searched here)."""
-    from bonecap.build_subject import (FOOT_AXES, FOOT_PREFIXES, HAND_AXES, HAND_PREFIXES, STATIC_ROBUST_ROUNDS,
-                                       bind_static, capsule_static_disagreement, functional_twists,
+    from bonecap.build_subject import (CAPSULE_STATIC_TOLERANCE_MM, FOOT_AXES, FOOT_PREFIXES, HAND_AXES,
+                                       HAND_PREFIXES, STATIC_ROBUST_ROUNDS, bind_static, capsule_static_disagreement, functional_twists,
                                        joint_consistent, neutral_twist, pose_to_static, pronate_on_ulna,
                                        static_markers, turn_femurs)
     from bonecap.markers import place_markers
@@ -1587,19 +1587,16 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
         # without capsules are).
         caps_in_static = {n for n in snames if subject.markers[n].source == "capsule"}
         if caps_in_static:
-            rms, flagged = capsule_static_disagreement(sk, snames, bones, local, lab, poses, caps_in_static)
+            # only segments the scan did not measure (a hand, a foot): bound from the static instead, seed 3's
+            # trunk capsules (4.4 mm RMS from the static) had left the trunk 2.4 deg off in every trial
+            rms, flagged = capsule_static_disagreement(sk, snames, bones, local, lab, poses, caps_in_static,
+                                                       scanned_bones=SEGMENTED_BONES)
             report["capsule_static_rms_mm"] = {r: round(v, 2) for r, v in rms.items()}
-            # Only a segment the scan did not measure (no bone of it segmented: a hand, a foot) can carry a
-            # wrong MRI pose into all its capsule bindings at once. Where the scan measured it, the static's
-            # own misfit is the model's (a rigid trunk, a girdle that cannot turn its scapula; phantom seed 3:
-            # the trunk's capsules 4.4 mm RMS from the static, bound within 0.6-1.0 mm of the truth; bound
-            # from the static instead, 5.9-8.9 mm, and the trunk 2.4 deg off in every trial).
-            plan = plan_segments(sk, bones)
-            scanned = {seg.root for seg in plan.segments if any(m in SEGMENTED_BONES for m in seg.members)}
-            report["capsule_segments_refuted_but_scanned"] = [r for r in flagged if r in scanned]
-            flagged = [r for r in flagged if r not in scanned]
+            report["capsule_segments_refuted_but_scanned"] = sorted(
+                r for r, v in rms.items() if v > CAPSULE_STATIC_TOLERANCE_MM and r not in flagged)
             report["capsule_segments_bound_from_static"] = flagged
             if flagged:
+                plan = plan_segments(sk, bones)
                 for n, b in zip(snames, bones):
                     if n in caps_in_static and plan.segments[plan.segment_of[b]].root in flagged:
                         subject.markers[n] = MarkerBinding(n, b, landmark_local[n], "placed")

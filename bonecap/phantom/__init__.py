@@ -196,8 +196,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     from bonecap.phantom.mri import (CAPSULE_DIAMETER_MM, FOREARM_EXTEND_MM, ForearmPose, capsule_meshes,
                                      icosphere, plan_stations, render_forearm_stacks, render_stations,
                                      write_merged_labels)
-    from bonecap.phantom.subject import PRESETS as SUBJECT_PRESETS
-    from bonecap.phantom.subject import make_subject, release_memory
+    from bonecap.phantom.subject import make_subject, memory_tidier
     from bonecap.phantom.trials import make_trials
     from bonecap.skeleton.template import template_marker_set
 
@@ -206,8 +205,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     if stature_mm is not None and not 1000.0 <= stature_mm <= 2300.0:
         raise InputError(f"stature must be between 1.0 and 2.3 m, got {stature_mm / 1000:g} m")
     cfg = PRESETS[preset]
-    # memory handed back between stages only where it is worth its time (see subject.PRESETS)
-    tidy = release_memory if SUBJECT_PRESETS[preset].get("lean", True) else (lambda: None)
+    tidy = memory_tidier(preset)        # memory handed back between stages where it is worth its time
     out = Path(out_dir)
     truth = out / "truth"
     rng = np.random.default_rng(seed)

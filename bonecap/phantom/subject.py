@@ -1944,6 +1944,11 @@ class _Grid:
         return out
 
 
+def memory_tidier(preset: str):
+    """:func:`release_memory` where the preset is lean (``PRESETS[preset]["lean"]``), else a no-op."""
+    return release_memory if PRESETS[preset].get("lean", True) else (lambda: None)
+
+
 def release_memory() -> None:
     """Hand freed heap memory back to the system (glibc only; elsewhere a no-op).
 
@@ -2609,7 +2614,7 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
         raise InputError(f"unknown phantom preset {preset!r} (known: {', '.join(PRESETS)})")
     cfg = PRESETS[preset]
     lean = bool(cfg.get("lean", True))
-    tidy = release_memory if lean else (lambda: None)
+    tidy = memory_tidier(preset)
     if not lean:
         # the meshing libraries imported once, here: the skeleton's meshing child (forked) and the body's
         # decimation (in this process) then both have them; the lean path keeps them out of this process
