@@ -397,37 +397,38 @@ def test_tiny_preset_is_fast(phantom, tmp_path):
 
 def test_mri_pose_is_undone(phantom):
     """A subject whose reference (MRI) pose has the arms and legs abducted moves exactly like the
-    same subject in the anatomical pose: angles are anatomical, never 'relative to the scan'."""
+    same subject in the anatomical pose: angles are anatomical, never 'relative to the scan'. The
+    same subject: its shoulder girdles are where the rhythm puts them for the abducted arms."""
+    from bonecap.phantom.trials import _pose_core
+
     skel, ms = phantom["skeleton"], phantom["marker_set"]
     import copy
 
     mri = copy.deepcopy(skel)
     table = joint_table(skel)
-    kids = {n: [c for c, b in skel.bones.items() if b.parent == n] for n in skel.bones}
-
-    def subtree(b):
-        out = [b]
-        for c in kids[b]:
-            out += subtree(c)
-        return out
-
-    for s, sign in (("r", -1.0), ("l", 1.0)):
-        for joint, angle in ((f"shoulder_{s}", 12.0), (f"hip_{s}", 4.0)):
-            j = table.joints[joint]
-            c = _apply(skel.bones[j.parent].bone_to_world, j.centre)
-            M = np.eye(4)
-            M[:3, :3] = Rotation.from_rotvec(np.radians(angle * sign) * np.array([1.0, 0, 0])).as_matrix()
-            M[:3, 3] = c - M[:3, :3] @ c
-            for b in subtree(j.child):
-                mri.bones[b].bone_to_world = M @ mri.bones[b].bone_to_world
+    offsets = {f"{j}_{s}": np.array([[0.0, a, 0.0]]) for s in "rl" for j, a in (("shoulder", 12.0), ("hip", 4.0))}
+    root = skel.names[0]
+    T, _ = _pose_core(skel, table, offsets, {}, skel.bones[root].bone_to_world[None])
+    for i, n in enumerate(skel.names):
+        mri.bones[n].bone_to_world = T[0, i]
+    moved = {n for i, n in enumerate(skel.names) if np.abs(T[0, i] - skel.bones[n].bone_to_world).max() > 1e-6}
+    if phantom["kind"] != "rajagopal":
+        assert {"scapula_r", "clavicle_l", "humerus_r", "femur_l"} <= moved
     mri.metadata = {**mri.metadata, "phantom": {"pose": {"arm_abduction_deg_r": 12.0, "arm_abduction_deg_l": 12.0,
                                                         "leg_abduction_deg": 4.0}}}
     kw = dict(trials=("static", "walk"), duration_scale=0.3, seed=5)
     a = synthesize_trials(skel, ms, **kw)[0]
     b = synthesize_trials(mri, ms, **kw)[0]
+    # exact, but for the girdles and the arms they carry: the rhythm's turns (elevation, retraction, upward
+    # rotation about axes fixed in the reference's frames) do not compose exactly (0.17 mm, 0.14 deg here)
+    girdle = [i for i, n in enumerate(skel.names) if n.split("_")[0] in
+              ("clavicle", "scapula", "humerus", "ulna", "radius", "carpals", "ray1", "ray2", "ray3", "ray4", "ray5")]
+    rest = [i for i in range(len(skel.names)) if i not in girdle]
     for x, y in zip(a, b):
-        assert np.abs(x.transforms - y.transforms).max() < 1e-6
-        assert np.abs(x.marker_truth - y.marker_truth).max() < 1e-6
+        assert np.abs(x.transforms[:, rest] - y.transforms[:, rest]).max() < 1e-6
+        assert np.abs(x.transforms[:, girdle, :3, :3] - y.transforms[:, girdle, :3, :3]).max() < 0.005
+        assert np.abs(x.transforms[:, girdle, :3, 3] - y.transforms[:, girdle, :3, 3]).max() < 0.5
+        assert np.abs(x.marker_truth - y.marker_truth).max() < 0.5
 
 
 def test_markers_sit_on_a_given_skin(phantom):

@@ -89,7 +89,9 @@ acromioclavicular joint (the scapula ~0.3 E on the thorax: Inman's 2:1), the
 humerus keeping the orientation its shoulder angles give it relative to the
 thorax while the girdle carries its centre (at 150 deg the acromion moves
 ~70 mm, the shoulder centre ~80 mm; an OpenSim model without clavicles has
-no girdle);
+no girdle). The reference pose's girdle is the rhythm's at the reference's own
+``E`` (an MRI pose's arms lie abducted), so a pose turns it by the rhythm of
+``E - E_ref``;
 the **patella**, when it hangs from the femur, turns about the knee flexion
 axis through the knee centre by 0.7 x knee flexion (it rides the trochlea; its
 joint centre then slides on the femur by design); the **radius** is driven by
@@ -512,11 +514,17 @@ def girdle_angles(table: "JointTable", angles: Mapping[str, np.ndarray], side: s
     :data:`GIRDLE_RHYTHM` of it."""
     spec = table.joints[f"shoulder_{side}"]
     a = np.atleast_2d(np.asarray(angles.get(f"shoulder_{side}", np.zeros((1, 3))), float))
+    E = _arm_elevation(spec, _angles_to_matrix(spec.axes, a))
+    return {k: c * E for k, c in GIRDLE_RHYTHM.items()}
+
+
+def _arm_elevation(spec: "JointSpec", R: np.ndarray) -> np.ndarray:
+    """The humerus's elevation (deg, (F,)) from the thorax's downward axis for shoulder rotations ``R``
+    (F, 3, 3) from the anatomical pose (parent frame)."""
     # the rotation axis is the superior one times the side (_AXES): the humerus's long axis points down
     down = -spec.axes[2] * spec.side
-    cosE = np.einsum("fij,j,i->f", _angles_to_matrix(spec.axes, a), down, down)
-    E = np.degrees(np.arccos(np.clip(cosE, -1.0, 1.0)))
-    return {k: c * E for k, c in GIRDLE_RHYTHM.items()}
+    cosE = np.einsum("fij,j,i->f", R, down, down)
+    return np.degrees(np.arccos(np.clip(cosE, -1.0, 1.0)))
 
 
 def _move_girdles(T: np.ndarray, skeleton: Skeleton, table: "JointTable", angles: Mapping[str, np.ndarray],
@@ -529,7 +537,13 @@ def _move_girdles(T: np.ndarray, skeleton: Skeleton, table: "JointTable", angles
         if not all(b in index for b in (g.sternum, g.clavicle, g.scapula, g.humerus)) \
                 or f"shoulder_{s}" not in table.joints:
             continue
-        ga = {k: np.broadcast_to(v, (F,)) for k, v in girdle_angles(table, angles, s).items()}
+        # The reference pose's girdle is where the rhythm has it for the reference's own arms (an MRI
+        # pose's arms lie abducted ~20 deg): the trial's girdle turns from there. (It had been taken as the
+        # rhythm's zero, the arm hanging straight down, so that a walk's hanging arm turned the scapula
+        # upward on the MRI's by ~2 deg while the arm came down ~15 deg.)
+        E_ref = _arm_elevation(table.joints[f"shoulder_{s}"], table.joints[f"shoulder_{s}"].neutral.T[None])[0]
+        ga = {k: np.broadcast_to(v - GIRDLE_RHYTHM[k] * E_ref, (F,))
+              for k, v in girdle_angles(table, angles, s).items()}
         if not np.any([np.any(v) for v in ga.values()]):
             continue
         B = skeleton.bones
