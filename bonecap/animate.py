@@ -138,7 +138,8 @@ def solve_trial(subject: Subject, names: list[str], measured: np.ndarray, *, rat
     model = forearm_models(subject) if forearm else None
     if solver == "lsq":
         motion = lsq.solve_lsq(subject.skeleton, bones, local, measured, weights=weights,
-                               max_gap_frames=max_gap_frames, forearm=model, marker_labels=names, rate_hz=rate)
+                               max_gap_frames=max_gap_frames, forearm=model, marker_labels=names, rate_hz=rate,
+                               rhythm=subject.follows_rhythm())
     elif solver == "paper":
         from bonecap.motion.paper_solver import solve_paper
 

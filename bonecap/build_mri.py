@@ -1024,7 +1024,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     # 7. markers
     bar.set_postfix_str("markers")
     subject = Subject(skeleton=personal, skin=skin, marker_set=mset.name,
-                      provenance={"command": "build-subject", "mode": "mri", "generic": str(generic),
+                      provenance={"command": "build-subject", "mode": "mri", "girdle_rhythm": True,
+                                  "generic": str(generic),
                                   "marker_set": mset.source or mset.name, "mri": [str(p) for p in mri],
                                   "static": str(static) if static else None,
                                   "seeds": str(seeds) if seeds else "template (affine to the body)"})
@@ -1497,7 +1498,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     from bonecap.build_subject import (CAPSULE_STATIC_TOLERANCE_MM, FOOT_AXES, FOOT_PREFIXES, HAND_AXES,
                                        HAND_PREFIXES, STATIC_ROBUST_ROUNDS, bind_static, capsule_static_disagreement, functional_twists,
                                        joint_consistent, neutral_twist, pose_to_static, pronate_on_ulna,
-                                       static_markers, turn_femurs)
+                                       rhythm_consistent, static_markers, turn_femurs)
     from bonecap.markers import place_markers
     from bonecap.motion.lsq import plan_segments
     from bonecap.subject import MarkerBinding
@@ -1570,7 +1571,8 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
             # the hand's twist is the radius's (the wrist turns no way about its long axis), and the foot's
             # roll about its long axis is not observable from heel and toe: the shank's (Plug-in Gait)
             solved = neutral_twist(sk, solved, HAND_PREFIXES, HAND_AXES)
-            return joint_consistent(sk, neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES))
+            solved = neutral_twist(sk, solved, FOOT_PREFIXES, FOOT_AXES)
+            return joint_consistent(sk, rhythm_consistent(sk, bones, solved))
 
         def solve_static():
             local = np.array([subject.markers[n].local for n in snames])

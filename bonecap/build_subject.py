@@ -107,7 +107,7 @@ STATIC_ROBUST_ROUNDS = 3
 
 def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np.ndarray,
                    static_lab: np.ndarray, *, converge: bool = True, robust_rounds: int = 0,
-                   weights: np.ndarray | None = None) -> np.ndarray:
+                   weights: np.ndarray | None = None, rhythm: bool = True) -> np.ndarray:
     """Pose every bone to one frame of static markers with the joint-coupled solver, to convergence.
 
     Parameters
@@ -134,6 +134,9 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
         segment that the others agree on.
     weights : ndarray (M,), optional
         Each marker's weight (default 1); the robust rounds multiply theirs into it.
+    rhythm : bool, default True
+        The scapulae turn on their clavicles with the arms (``solve_lsq(rhythm=...)``): a
+        personal skeleton's (:meth:`bonecap.subject.Subject.follows_rhythm`).
 
     Returns
     -------
@@ -159,7 +162,7 @@ def pose_to_static(skeleton: Skeleton, marker_bones: list[str], marker_local: np
     for _ in range(robust_rounds + 1):
         # (without the feet's axis hold: the static takes their roll from the shank by rule, neutral_twist)
         motion = solve_lsq(skeleton, marker_bones, marker_local, static_lab[None], weights=weights,
-                           max_gap_frames=0, hold_axes=False, **sweeps)
+                           max_gap_frames=0, hold_axes=False, rhythm=rhythm, **sweeps)
         T = motion.transforms[0]
         if not robust_rounds:
             break
@@ -240,6 +243,8 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
     from bonecap.motion.paper import minimal_rotation
     from bonecap.skeleton.kinematics import proximal_joint
 
+    from bonecap.skeleton.kinematics import GIRDLE_JOINTS
+
     out = poses.copy()
     idx = {n: i for i, n in enumerate(skeleton.names)}
     for n in skeleton.names:
@@ -247,6 +252,14 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         if not n.startswith(prefixes) or b.parent is None:
             continue
         Tp, Tc = out[idx[b.parent]], out[idx[n]]
+        gp = skeleton.bones[b.parent].parent
+        if gp is not None and any(j in skeleton.bones[gp].joint_centres for j in GIRDLE_JOINTS):
+            # a scapula (on a clavicle): the solver turns it upward on the clavicle with the arm
+            # (motion.lsq.rhythm_turns), the humerus's neutral twist is not turned with it: the
+            # scapula taken as the clavicle carries it at the reference (a no-MRI phantom's static
+            # humerus had been turned 8 deg about its axis)
+            Tp = out[idx[gp]] @ np.linalg.solve(skeleton.bones[gp].bone_to_world,
+                                                skeleton.bones[b.parent].bone_to_world)
         if not (np.isfinite(Tp).all() and np.isfinite(Tc).all()):
             continue
         try:
@@ -564,6 +577,49 @@ def functional_twists(subject: Subject, trials: list[tuple[Trial, str]]) -> dict
     return knee_flexion_twist(subject.skeleton, np.concatenate(pooled))
 
 
+def rhythm_consistent(skeleton: Skeleton, marker_bones: list[str], poses: np.ndarray) -> np.ndarray:
+    """The static's scapulae turned on their clavicles as the solver's rhythm turns them for its arms.
+
+    The solver turns each scapula upward on its clavicle with the arm's elevation
+    (:func:`bonecap.motion.lsq.rhythm_turns`), taking the turn from the poses of its last sweep. A
+    static solved to a few sweeps only (the no-MRI path), or changed after the solve, can hold a
+    scapula at another turn than its final arm and clavicle give; markers bound to it there would
+    then sit off where every trial's solve carries them (a phantom's scapula markers 10-20 mm, its
+    humerus then turned 6-8 deg about its axis to follow). Call before :func:`joint_consistent`,
+    which then hangs the arm from the turned shoulder centre.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    marker_bones : list of str
+        The bones of the static's markers (the solver's segments).
+    poses : ndarray (B, 4, 4)
+        ``bone_to_lab`` of the static.
+
+    Returns
+    -------
+    ndarray (B, 4, 4)
+        A copy, each rhythm's scapula re-turned (NaN poses left alone).
+    """
+    from bonecap.motion.lsq import plan_rhythms, plan_segments, rhythm_turns
+
+    plan = plan_segments(skeleton, marker_bones)
+    idx = {n: i for i, n in enumerate(skeleton.names)}
+    out = poses.copy()
+    for rh in plan_rhythms(skeleton, plan):
+        root = plan.segments[rh.segment].root
+
+        def frame(s):
+            return poses[idx[plan.segments[s].root]][None]
+
+        if not all(np.isfinite(frame(s)).all() for s in (rh.parent, rh.segment, rh.child)):
+            continue
+        turn, _ = rhythm_turns(rh, frame(rh.parent), frame(rh.segment), frame(rh.child))
+        rest = np.linalg.solve(skeleton.bones[root].bone_to_world, skeleton.bones[rh.scapula].bone_to_world)
+        out[idx[rh.scapula]] = poses[idx[root]] @ turn[0] @ rest
+    return out
+
+
 def joint_consistent(skeleton: Skeleton, poses: np.ndarray) -> np.ndarray:
     """The solved static rebuilt as a chain of ball joints, so that every joint centre coincides.
 
@@ -745,7 +801,8 @@ def converge_limbs(skeleton: Skeleton, marker_set: MarkerSet, names: list[str], 
     local = np.vstack([marker_local, vl, corners])
     lab = np.vstack([static_lab, vt, corners @ R0[:3, :3].T + R0[:3, 3]])
     weights = np.r_[np.ones(len(marker_bones)), np.full(len(vb) + len(corners), float(weight))]
-    second = pose_to_static(skeleton, bones, local, lab, converge=True, weights=weights)
+    # (a template scaled to the static: its scapulae ride on their clavicles, see Subject.follows_rhythm)
+    second = pose_to_static(skeleton, bones, local, lab, converge=True, weights=weights, rhythm=False)
     limbs: set[str] = set()
     for b in held:
         top = b
@@ -917,7 +974,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
             sk = scale_skeleton(template, scales)
             placed = place(sk)[0]
             local = np.array([_local(sk.bones[b].bone_to_world, placed[n]) for n, b in zip(names, bones)])
-            poses = pose_to_static(sk, bones, local, lab, converge=False)
+            poses = pose_to_static(sk, bones, local, lab, converge=False, rhythm=False)
             index = {n: i for i, n in enumerate(sk.names)}
             measured_local = np.array([_local(poses[index[b]], p) if np.isfinite(poses[index[b]]).all()
                                        else np.full(3, np.nan) for b, p in zip(bones, lab)])
@@ -938,7 +995,8 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
     # sweeps leave the legs where the template stood them, though (knee centres 35-46 mm, ankles 42-63 mm
     # off on the phantoms of seeds 0-3): the legs are then converged with their knee and ankle centres held
     # where the lateral markers put them (converge_limbs).
-    first = pose_to_static(sk, bones, local, lab, converge=False)
+    # (the scapulae on their clavicles as the template has them: see Subject.follows_rhythm)
+    first = pose_to_static(sk, bones, local, lab, converge=False, rhythm=False)
     poses, n_targets = converge_limbs(sk, mset, names, bones, local, lab, first)
     poses = neutral_twist(sk, poses)
     poses = neutral_twist(sk, poses, HAND_PREFIXES, HAND_AXES)
@@ -956,7 +1014,7 @@ def build_from_static(static: str | os.PathLike, *, generic: str | os.PathLike =
                   "bone_to_lab": {b: poses[i] for i, b in enumerate(sk.names) if np.isfinite(poses[i]).all()}}
     subject = Subject(static=static_doc,
         skeleton=sk, markers=markers, marker_set=mset.name,
-        provenance={"command": "build-subject", "mode": "static", "generic": str(generic),
+        provenance={"command": "build-subject", "mode": "static", "girdle_rhythm": False, "generic": str(generic),
                     "marker_set": mset.source or mset.name, "static": str(static),
                     "subject_prefix": subject_name, "scale_iterations": iterations},
     )

@@ -118,6 +118,20 @@ class Subject:
     provenance: dict[str, Any] = field(default_factory=dict)
     static: dict[str, Any] = field(default_factory=dict)
 
+    def follows_rhythm(self) -> bool:
+        """Whether the solvers turn this subject's scapulae on their clavicles with the arms
+        (scapulohumeral rhythm, :func:`bonecap.motion.lsq.rhythm_turns`).
+
+        The rhythm counts from the reference pose: the subject's own girdle at its own arm's
+        elevation, as an MRI measured them (``provenance["girdle_rhythm"]``, True from MRI).
+        A template scaled to a static trial (no MRI) has the template's girdle and arms at its
+        reference, not the subject's: counted from there the rhythm put the no-MRI phantoms'
+        shoulder centres 4-5 mm further off and the real Plug-in Gait walk's upper-arm markers
+        3 mm (docs/benchmarks.md), so it is off there. A subject folder without the key
+        follows its build mode.
+        """
+        return bool(self.provenance.get("girdle_rhythm", self.provenance.get("mode") != "static"))
+
     def marker_arrays(self, names: list[str] | None = None) -> tuple[list[str], list[str], np.ndarray]:
         """``(names, bones, local (M, 3))`` for the solvers, in ``names`` order."""
         names = list(self.markers) if names is None else list(names)

@@ -88,6 +88,8 @@ def test_subject_folder_layout(built, phantom):
     # every marker of the set the static trial holds is bound from it
     assert report["markers_bound"] >= 57
     assert sum(m.source == "static" for m in subj.markers.values()) >= 57
+    # a personal (MRI) girdle: the solvers turn its scapulae with the arms
+    assert subj.provenance["girdle_rhythm"] is True and subj.follows_rhythm()
     # the station registration recovered the truth's relative motions to within a voxel
     truth = json.loads((phantom / "truth/stations.json").read_text())["stations"]
     assert len(report["stations"]) == len(truth)
@@ -788,7 +790,11 @@ def test_no_mri_trunk_and_arms_against_the_truth(phantom, tmp_path):
     from bonecap.build_subject import run_build_subject
     from bonecap.motion.rigid import rotation_angle_deg
 
+    from bonecap.subject import read_subject
+
     run_build_subject(None, tmp_path / "s", static=phantom / "trials/static.c3d")
+    # the template's girdle is not the subject's: no rhythm counted from it (Subject.follows_rhythm)
+    assert read_subject(tmp_path / "s", load_meshes=False).follows_rhythm() is False
     animate(tmp_path / "s", [phantom / "trials/static.c3d", phantom / "trials/arm_raise.c3d"], tmp_path / "a")
     for trial in ("static", "arm_raise"):
         ours = np.load(tmp_path / f"a/{trial}_poses.npz", allow_pickle=True)

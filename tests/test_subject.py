@@ -75,6 +75,14 @@ def test_subject_round_trip(tmp_path):
     assert np.min(np.linalg.norm(world.vertices - knee, axis=1)) < 40
 
 
+def test_the_rhythm_follows_the_build_mode_unless_the_subject_says():
+    sk = chain()
+    assert Subject(sk, provenance={"mode": "mri"}).follows_rhythm()
+    assert not Subject(sk, provenance={"mode": "static"}).follows_rhythm()
+    assert Subject(sk, provenance={"mode": "static", "girdle_rhythm": True}).follows_rhythm()
+    assert not Subject(sk, provenance={"mode": "mri", "girdle_rhythm": False}).follows_rhythm()
+
+
 def test_read_subject_errors(tmp_path):
     with pytest.raises(InputError, match="no subject.yaml"):
         read_subject(tmp_path)

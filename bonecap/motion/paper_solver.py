@@ -75,7 +75,7 @@ def solve_paper(subject, names: list[str], measured: np.ndarray, *, max_gap_fram
     sk = subject.skeleton
     _, bones, local = subject.marker_arrays(names)
     base = solve_lsq(sk, bones, local, measured, max_gap_frames=max_gap_frames, forearm=forearm,
-                     marker_labels=names, rate_hz=rate_hz)
+                     marker_labels=names, rate_hz=rate_hz, rhythm=subject.follows_rhythm())
     T = base.transforms.copy()
     index = {b: i for i, b in enumerate(base.bones)}
     col = {n: i for i, n in enumerate(names)}
