@@ -171,26 +171,32 @@ def test_a_vertebra_with_one_marker_joins_the_trunk_above_it():
     assert old > 9.0                                  # what riding on the pelvis would have missed
 
 
-def girdle_skeleton():
+def _girdle_chain(thorax, sc, ac, gh, inferior_angle, elbow=None, world="model"):
     """thorax -> clavicle_r (sternoclavicular; the thorax lists it as ``sternoclavicular_r``, as the
-    embedded skeleton's sternum does) -> scapula_r (acromioclavicular) -> humerus_r (shoulder); frames =
-    world at rest (x anterior, y right, z up), mm."""
+    embedded skeleton's sternum does) -> scapula_r (acromioclavicular) -> humerus_r (shoulder, and the
+    elbow where given), every frame the world's at rest, each origin at its proximal joint (mm)."""
     def T(p):
         M = np.eye(4)
         M[:3, 3] = p
         return M
-    sc, ac, gh = np.array([30.0, 20.0, 1400.0]), np.array([-10.0, 170.0, 1420.0]), np.array([-20.0, 180.0, 1380.0])
+    thorax, sc, ac, gh = (np.asarray(p, float) for p in (thorax, sc, ac, gh))
+    arm = {"shoulder": [0, 0, 0]} | ({} if elbow is None else {"elbow": np.asarray(elbow, float) - gh})
     bones = {
-        "thorax": Bone("thorax", None, bone_to_world=T([0, 0, 1300]),
-                       joint_centres={"sternoclavicular_r": sc - [0, 0, 1300]}),
+        "thorax": Bone("thorax", None, bone_to_world=T(thorax), joint_centres={"sternoclavicular_r": sc - thorax}),
         "clavicle_r": Bone("clavicle_r", "thorax", bone_to_world=T(sc),
                            joint_centres={"sternoclavicular": [0, 0, 0], "acromioclavicular": ac - sc}),
         "scapula_r": Bone("scapula_r", "clavicle_r", bone_to_world=T(ac),
                           joint_centres={"acromioclavicular": [0, 0, 0], "shoulder": gh - ac},
-                          landmarks={"inferior_angle": [-60.0, -70.0, -150.0]}),
-        "humerus_r": Bone("humerus_r", "scapula_r", bone_to_world=T(gh), joint_centres={"shoulder": [0, 0, 0]}),
+                          landmarks={"inferior_angle": inferior_angle}),
+        "humerus_r": Bone("humerus_r", "scapula_r", bone_to_world=T(gh), joint_centres=arm),
     }
-    return Skeleton(bones, world="model")
+    return Skeleton(bones, world=world)
+
+
+def girdle_skeleton():
+    """The girdle chain with frames = world at rest (x anterior, y right, z up), mm."""
+    return _girdle_chain([0, 0, 1300], [30.0, 20.0, 1400.0], [-10.0, 170.0, 1420.0], [-20.0, 180.0, 1380.0],
+                         [-60.0, -70.0, -150.0])
 
 
 def test_a_shoulder_girdle_with_its_acromion_marker_turns_on_the_thorax():
@@ -247,26 +253,11 @@ def test_a_shoulder_girdle_with_its_acromion_marker_turns_on_the_thorax():
 
 
 def isb_girdle_skeleton():
-    """thorax -> clavicle_r -> scapula_r -> humerus_r with the arm hanging straight down; frames = world
-    at rest, which is ISB's (x anterior, y up, z right), mm."""
-    def T(p):
-        M = np.eye(4)
-        M[:3, 3] = p
-        return M
-    sc, ac, gh = np.array([20.0, 1400.0, 30.0]), np.array([-10.0, 1420.0, 170.0]), np.array([-20.0, 1380.0, 185.0])
-    el = gh - [0.0, 290.0, 0.0]
-    bones = {
-        "thorax": Bone("thorax", None, bone_to_world=T([0, 1300, 0]),
-                       joint_centres={"sternoclavicular_r": sc - [0, 1300, 0]}),
-        "clavicle_r": Bone("clavicle_r", "thorax", bone_to_world=T(sc),
-                           joint_centres={"sternoclavicular": [0, 0, 0], "acromioclavicular": ac - sc}),
-        "scapula_r": Bone("scapula_r", "clavicle_r", bone_to_world=T(ac),
-                          joint_centres={"acromioclavicular": [0, 0, 0], "shoulder": gh - ac},
-                          landmarks={"inferior_angle": [-60.0, -150.0, -70.0]}),
-        "humerus_r": Bone("humerus_r", "scapula_r", bone_to_world=T(gh),
-                          joint_centres={"shoulder": [0, 0, 0], "elbow": el - gh}),
-    }
-    return Skeleton(bones, world="isb")
+    """The girdle chain with the arm hanging straight down and an elbow; frames = world at rest, which is
+    ISB's (x anterior, y up, z right), mm."""
+    gh = np.array([-20.0, 1380.0, 185.0])
+    return _girdle_chain([0, 1300, 0], [20.0, 1400.0, 30.0], [-10.0, 1420.0, 170.0], gh, [-60.0, -150.0, -70.0],
+                         elbow=gh - [0.0, 290.0, 0.0], world="isb")
 
 
 def _turn_about(R, c):
