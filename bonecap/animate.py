@@ -443,8 +443,9 @@ def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike],
         names, measured, missing = trial_markers(subject, trial, path=path)
         loaded.append((Path(path), trial, names, measured, missing))
     out = Path(out_dir)
+    # the scapulae turn on their clavicles with the arms for a subject built from MRI (Subject.follows_rhythm)
     report: dict[str, Any] = {"subject": str(subject_dir), "solver": solver, "forearm_model": forearm,
-                              "trials": {}}
+                              "girdle_rhythm": subject.follows_rhythm(), "trials": {}}
     for path, trial, names, measured, missing in progress(loaded, "animate", unit="trial"):
         t0 = time.perf_counter()
         motion = solve_trial(subject, names, measured, rate=trial.rate, solver=solver, forearm=forearm,
