@@ -481,10 +481,14 @@ def rhythm_turns(rhythm: Rhythm, thorax: np.ndarray, girdle: np.ndarray, arm: np
     alpha = (RHYTHM_SCAPULOTHORACIC * (elevation - rhythm.elevation_ref)
              - (clavicle - rhythm.clavicle_ref))
     alpha = np.nan_to_num(np.clip(alpha, *RHYTHM_LIMITS_DEG), nan=0.0)
-    R = Rotation.from_rotvec(np.radians(alpha)[:, None] * rhythm.axis).as_matrix()
-    turn = np.tile(np.eye(4), (len(alpha), 1, 1))
+    # Rodrigues about the one axis: R = I + sin(a) K + (1 - cos(a)) K^2
+    K = _skew(rhythm.axis)
+    a = np.radians(alpha)[:, None, None]
+    R = np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
+    turn = np.zeros((len(alpha), 4, 4))
     turn[:, :3, :3] = R
     turn[:, :3, 3] = rhythm.ac - R @ rhythm.ac
+    turn[:, 3, 3] = 1.0
     return turn, alpha
 
 
@@ -934,8 +938,19 @@ _RHYTHM_TOL_DEG = 0.01
 def _unturned(T: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """``T @ turn^-1 @ T^-1`` (F, 4, 4): a lab point of the turned scapula to where the girdle's
     unturned copy has it; the identity where ``T`` is unsolved."""
-    out = T @ _inv(turn) @ _inv(np.nan_to_num(T))
-    return np.where(np.isfinite(T).all(axis=(1, 2))[:, None, None], out, np.eye(4))
+    good = np.isfinite(T).all(axis=(1, 2))
+    R_T = np.where(good[:, None, None], T[:, :3, :3], np.eye(3))
+    t_T = np.where(good[:, None], T[:, :3, 3], 0.0)
+    # with turn = (Q, q): T turn^-1 T^-1 = (R_T Q^T R_T^T, t_T + R_T Q^T (-q) - R_T Q^T R_T^T t_T)
+    Qt = np.swapaxes(turn[:, :3, :3], 1, 2)
+    RQt = R_T @ Qt
+    M = RQt @ np.swapaxes(R_T, 1, 2)
+    out = np.zeros_like(turn)
+    out[:, :3, :3] = M
+    out[:, :3, 3] = t_T - np.einsum("fij,fj->fi", RQt, turn[:, :3, 3]) - np.einsum("fij,fj->fi", M, t_T)
+    out[:, 3, 3] = 1.0
+    out[~good] = np.eye(4)
+    return out
 
 
 def _swing(T_par: np.ndarray, T_seg: np.ndarray, d: np.ndarray, R_rest: np.ndarray, centre: np.ndarray
