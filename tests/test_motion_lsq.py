@@ -376,6 +376,31 @@ def test_the_solver_follows_a_scapula_that_turns_with_the_arm():
     assert np.nanmax(static.residuals) < 0.05
 
 
+def test_a_static_scapula_is_re_turned_to_the_rhythm_of_its_final_arm():
+    """build_subject.rhythm_consistent: a static whose scapula sits at another turn than its arm and
+    clavicle give (a static of a few sweeps, or changed after the solve) gets the solver's turn before the
+    markers are bound; nothing else moves."""
+    from bonecap.build_subject import rhythm_consistent
+
+    skel = isb_girdle_skeleton()
+    mb = ["thorax"] * 4 + ["scapula_r"] + ["humerus_r"] * 2
+    B = skel.bones
+    poses = np.array([B[n].bone_to_world for n in skel.names])
+    gh = B["humerus_r"].bone_to_world[:3, 3]
+    i = skel.names.index("humerus_r")
+    poses[i] = _turn_about(Rotation.from_rotvec([-np.pi / 2, 0, 0]).as_matrix()[None], gh)[0] @ poses[i]
+    out = rhythm_consistent(skel, mb, poses)
+    s, c = skel.names.index("scapula_r"), skel.names.index("clavicle_r")
+    rel = np.linalg.solve(out[c], out[s])[:3, :3] @ np.linalg.solve(B["clavicle_r"].bone_to_world,
+                                                                   B["scapula_r"].bone_to_world)[:3, :3].T
+    assert abs(np.degrees(Rotation.from_matrix(rel).magnitude()) - 30.0) < 1e-6   # a third of 90
+    others = [k for k in range(len(skel.names)) if k != s]
+    np.testing.assert_allclose(out[others], poses[others])
+    # the acromioclavicular joint stays where it was
+    ac = B["clavicle_r"].joint_centres["acromioclavicular"]
+    np.testing.assert_allclose(out[c, :3, :3] @ ac + out[c, :3, 3], out[s, :3, 3], atol=1e-9)
+
+
 def _ankle_skeleton():
     """shank (root) -> foot at the 'ankle', whose flexion axis is the shank's y (mm, frames = world at rest)."""
     bones = {
