@@ -241,9 +241,7 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         The corrected poses (a copy).
     """
     from bonecap.motion.paper import minimal_rotation
-    from bonecap.skeleton.kinematics import proximal_joint
-
-    from bonecap.skeleton.kinematics import GIRDLE_JOINTS
+    from bonecap.skeleton.kinematics import GIRDLE_JOINTS, proximal_joint
 
     out = poses.copy()
     idx = {n: i for i, n in enumerate(skeleton.names)}
@@ -255,9 +253,9 @@ def neutral_twist(skeleton: Skeleton, poses: np.ndarray, prefixes=("femur", "tib
         gp = skeleton.bones[b.parent].parent
         if gp is not None and any(j in skeleton.bones[gp].joint_centres for j in GIRDLE_JOINTS):
             # a scapula (on a clavicle): the solver turns it upward on the clavicle with the arm
-            # (motion.lsq.rhythm_turns), the humerus's neutral twist is not turned with it: the
-            # scapula taken as the clavicle carries it at the reference (a no-MRI phantom's static
-            # humerus had been turned 8 deg about its axis)
+            # (motion.lsq.rhythm_turns), but the arm's neutral twist is the thorax's, not turned with
+            # it (the phantom's humerus keeps the orientation its shoulder angles give it in the
+            # thorax): the scapula taken as the clavicle carries it at the reference
             Tp = out[idx[gp]] @ np.linalg.solve(skeleton.bones[gp].bone_to_world,
                                                 skeleton.bones[b.parent].bone_to_world)
         if not (np.isfinite(Tp).all() and np.isfinite(Tc).all()):
@@ -582,11 +580,11 @@ def rhythm_consistent(skeleton: Skeleton, marker_bones: list[str], poses: np.nda
 
     The solver turns each scapula upward on its clavicle with the arm's elevation
     (:func:`bonecap.motion.lsq.rhythm_turns`), taking the turn from the poses of its last sweep. A
-    static solved to a few sweeps only (the no-MRI path), or changed after the solve, can hold a
-    scapula at another turn than its final arm and clavicle give; markers bound to it there would
-    then sit off where every trial's solve carries them (a phantom's scapula markers 10-20 mm, its
-    humerus then turned 6-8 deg about its axis to follow). Call before :func:`joint_consistent`,
-    which then hangs the arm from the turned shoulder centre.
+    static not solved to convergence, or changed after the solve (twists set by rule), can hold a
+    scapula at another turn than its final arm and clavicle give, and markers bound to it there
+    would sit off where every trial's solve carries them. Call before :func:`joint_consistent`,
+    which then hangs the arm from the turned shoulder centre. (The MRI path's static is converged:
+    on the phantom of seed 1 its figures were the same with and without this.)
 
     Parameters
     ----------
