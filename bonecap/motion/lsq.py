@@ -390,10 +390,12 @@ class Rhythm:
     clavicle_ref: float
 
 
-def _unit(v) -> np.ndarray | None:
-    v = np.asarray(v, float)
-    n = float(np.linalg.norm(v))
-    return v / n if n > 1e-9 else None
+def _elevations(up: np.ndarray, arm: np.ndarray, clavicle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The arm's elevation from the thorax's downward axis and the clavicle's above its transverse
+    plane (deg), from unit vectors in one frame: the thorax's superior axis, the arm's long axis
+    (elbow -> shoulder) and the clavicle's (sternoclavicular -> acromioclavicular)."""
+    return (np.degrees(np.arccos(np.clip((arm * up).sum(-1), -1.0, 1.0))),
+            np.degrees(np.arcsin(np.clip((clavicle * up).sum(-1), -1.0, 1.0))))
 
 
 def plan_rhythms(skeleton: Skeleton, plan: SegmentPlan) -> list[Rhythm]:
@@ -406,6 +408,7 @@ def plan_rhythms(skeleton: Skeleton, plan: SegmentPlan) -> list[Rhythm]:
     arm hangs from the thorax).
     """
     from bonecap.skeleton.kinematics import joint_pair
+    from bonecap.skeleton.shapes import unit
 
     segs, out = plan.segments, []
     for g, seg in enumerate(segs):
@@ -423,26 +426,25 @@ def plan_rhythms(skeleton: Skeleton, plan: SegmentPlan) -> list[Rhythm]:
             jc = {k[:-2] if k.endswith(("_r", "_l")) else k: v for k, v in arm_bone.joint_centres.items()}
             if "shoulder" not in jc or "elbow" not in jc:
                 continue
-            parent_bone = skeleton.bones[skeleton.bones[seg.root].parent]
+            arm = np.asarray(jc["shoulder"], float) - np.asarray(jc["elbow"], float)   # arm's frame
+            ac = np.asarray(pair[0], float)                       # the clavicle's copy, root frame
+            cl = ac - seg.joint_in_self
+            if np.linalg.norm(arm) < 1e-9 or np.linalg.norm(cl) < 1e-9:
+                continue
+            arm, cl = unit(arm), unit(cl)
             T_par = skeleton.bones[segs[seg.parent].root].bone_to_world
             T_arm = arm_bone.bone_to_world
-            up_w = parent_bone.bone_to_world[:3, 1]
-            arm_w = _unit(T_arm[:3, :3] @ (np.asarray(jc["shoulder"], float) - np.asarray(jc["elbow"], float)))
-            ac = np.asarray(pair[0], float)                       # the clavicle's copy, root frame
-            cl = _unit(ac - seg.joint_in_self)
+            up_w = skeleton.bones[skeleton.bones[seg.root].parent].bone_to_world[:3, 1]
             x_w = skeleton.bones[m].bone_to_world[:3, 0]
             gh_w = T_arm[:3, :3] @ np.asarray(jc["shoulder"], float) + T_arm[:3, 3]
             ac_w = T_root[:3, :3] @ ac + T_root[:3, 3]
-            if arm_w is None or cl is None:
-                continue
             # positive: the shoulder centre rises (glenoid up, inferior angle lateral)
             sign = 1.0 if float(np.cross(x_w, gh_w - ac_w) @ up_w) >= 0 else -1.0
+            elevation_ref, clavicle_ref = _elevations(up_w, T_arm[:3, :3] @ arm, T_root[:3, :3] @ cl)
             out.append(Rhythm(
                 segment=g, child=kids[0], parent=seg.parent, scapula=m, ac=ac,
-                axis=sign * (T_root[:3, :3].T @ x_w), clavicle=cl, up=T_par[:3, :3].T @ up_w,
-                arm=_unit(np.asarray(jc["shoulder"], float) - np.asarray(jc["elbow"], float)),
-                elevation_ref=float(np.degrees(np.arccos(np.clip(-arm_w @ -up_w, -1, 1)))),
-                clavicle_ref=float(np.degrees(np.arcsin(np.clip((T_root[:3, :3] @ cl) @ up_w, -1, 1))))))
+                axis=sign * (T_root[:3, :3].T @ x_w), clavicle=cl, up=T_par[:3, :3].T @ up_w, arm=arm,
+                elevation_ref=float(elevation_ref), clavicle_ref=float(clavicle_ref)))
     return out
 
 
@@ -473,11 +475,8 @@ def rhythm_turns(rhythm: Rhythm, thorax: np.ndarray, girdle: np.ndarray, arm: np
     Inman VT, Saunders JBdeCM, Abbott LC (1944). Observations on the function of the shoulder
     joint. J Bone Joint Surg 26(1):1-30.
     """
-    up = thorax[:, :3, :3] @ rhythm.up
-    a = arm[:, :3, :3] @ rhythm.arm
-    c = girdle[:, :3, :3] @ rhythm.clavicle
-    elevation = np.degrees(np.arccos(np.clip((a * up).sum(-1), -1.0, 1.0)))
-    clavicle = np.degrees(np.arcsin(np.clip((c * up).sum(-1), -1.0, 1.0)))
+    elevation, clavicle = _elevations(thorax[:, :3, :3] @ rhythm.up, arm[:, :3, :3] @ rhythm.arm,
+                                      girdle[:, :3, :3] @ rhythm.clavicle)
     alpha = (RHYTHM_SCAPULOTHORACIC * (elevation - rhythm.elevation_ref)
              - (clavicle - rhythm.clavicle_ref))
     alpha = np.nan_to_num(np.clip(alpha, *RHYTHM_LIMITS_DEG), nan=0.0)
@@ -1464,10 +1463,10 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
             # the scapulae's turns and the priors' swings held while the steps run, then taken again
             # from their result (one frame: rhythms make newton False for more), until they settle
             moving = bool(rhythms or swung)
+            turn_rhythms()
             for _ in range(_RHYTHM_ROUNDS if moving else 1):
                 if done:
                     break
-                turn_rhythms()
                 held = [x.copy() for x in (*turns.values(), *swings.values())]
                 segs_n, local_n = _with_turns(segs, seg_local, rhythms, scapula_slots, turns, swings)
                 if not _newton(Tb, var, segs_n, local_n, seg_markers, meas_b, w_vis_b, joint_weight, tol_mm):
