@@ -720,11 +720,26 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
     return S @ T, {"lo_mm": round(lo - new_lo, 2), "hi_mm": round(new_hi - hi, 2), "stretch": round(a, 4)}
 
 
+#: The trimmed ICP's kept fraction for :func:`_warp_one`'s second rigid start (elongated bones).
+TRIMMED_START = 0.9
+#: How much smaller (fraction) the second start's affine residual must be to replace the first.
+SECOND_START_MARGIN = 0.1
+
+
+def _elongated(points: np.ndarray) -> bool:
+    """A long bone: its principal extent at least three times the next (as :func:`cover_extent` asks)."""
+    sv = np.linalg.svd(points - points.mean(axis=0), full_matrices=False, compute_uv=False)
+    return bool(sv[0] >= 3.0 * sv[1])
+
+
 def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
               n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
               n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray,
               cover: bool = False) -> dict[str, Any]:
     """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
+
+    An elongated bone gets a second rigid start, trimmed (:data:`TRIMMED_START`), whose affine
+    replaces the first where its residual is :data:`SECOND_START_MARGIN` smaller (report ``flags``).
 
     ``check_pts`` (template world) are where the Jacobian must stay positive: the bone's outer and
     inner surface vertices. ``cover``: stretch the affine along the bone's axis to its target's extent
@@ -738,6 +753,22 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     # bone's own extraction (checked, and cut where its search ended): the affine stage trims its outliers.
     T_rigid, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior, trim=1.0)
     T_aff, res_aff = affine_icp(sub, target, T_rigid)
+    flags: list[str] = []
+    if _elongated(src_world):
+        # ... but the untrimmed pairs also pull the bone toward whatever its extraction ran on into: a
+        # radius's search runs into the carpals (17-26 mm past its styloid on phantoms), and once the rigid
+        # fit had slid a radius 8 mm along its axis that way, the affine stretched it onto the carpals
+        # (20 mm long, its ISB origin at the styloid with it). The ICP has two minima there; a trimmed
+        # start finds the other, and the template lying on its extraction decides between them: the
+        # affine's residual (template -> extraction, which the run-on part does not lower), kept only
+        # when clearly smaller (SECOND_START_MARGIN), so a bone the untrimmed start holds stays where it was.
+        T_rt, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior, trim=TRIMMED_START)
+        if np.sqrt(np.mean(np.sum((_apply(T_rt, sub) - _apply(T_rigid, sub)) ** 2, axis=1))) > 1.0:
+            T_at, res_t = affine_icp(sub, target, T_rt)
+            if np.mean(res_t) < (1.0 - SECOND_START_MARGIN) * np.mean(res_aff):
+                flags.append(f"trimmed rigid start kept: affine residual {np.mean(res_aff):.2f} -> "
+                             f"{np.mean(res_t):.2f} mm")
+                T_rigid, T_aff, res_aff = T_rt, T_at, res_t
     T_icp, covered = T_aff, None
     if cover:
         T_aff, covered = cover_extent(T_aff, src_world, target.mesh.vertices)
@@ -746,7 +777,7 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     spacing = float(np.sqrt(base.to_trimesh().area / max(n_features, 8)))
     widths = list(widths) if widths else _default_widths(extent, spacing)
     current = base
-    warp, flags = None, []
+    warp = None
     for it, w in enumerate(widths):
         faces_i, bary, dst = _correspondences(current, target, n_features, 60.0, seed + 7 * it)
         src = np.einsum("nk,nkd->nd", bary, base.vertices[base.faces[faces_i]])
@@ -806,7 +837,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
     (initialised from the parent's rigid result and the template's relative
-    pose, or from ``init`` for the root), affine ICP, then the RBF warp fitted
+    pose, or from ``init`` for the root; a long bone also from a trimmed start,
+    the one whose affine lies closer on its target kept), affine ICP, then the RBF warp fitted
     to feature points (:func:`feature_points`, both ways) coarse to fine
     (kernel widths 0.3, 0.15 and 0.08 x the bone's size, capped at 4, 2.5 and
     1.5 feature-point spacings; correspondences recomputed from the previous
