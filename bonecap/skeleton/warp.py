@@ -763,6 +763,7 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         # affine's residual (template -> extraction, which the run-on part does not lower), kept only
         # when clearly smaller (SECOND_START_MARGIN), so a bone the untrimmed start holds stays where it was.
         T_rt, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior, trim=TRIMMED_START)
+        # the two starts within 1 mm RMS of each other: the same minimum, nothing to choose
         if np.sqrt(np.mean(np.sum((_apply(T_rt, sub) - _apply(T_rigid, sub)) ** 2, axis=1))) > 1.0:
             T_at, res_t = affine_icp(sub, target, T_rt)
             if np.mean(res_t) < (1.0 - SECOND_START_MARGIN) * np.mean(res_aff):
