@@ -34,6 +34,21 @@ def built(phantom, tmp_path_factory):
     return out, report
 
 
+def test_the_density_rules_extractions_are_warp_targets_only_when_trusted():
+    """From template seeds the density rule's bones (hips, sacrum, vertebrae, scapulae, patellae) are carried
+    by their neighbours; the long bones' extractions, and everything from the user's seeds or labels, stay."""
+    import trimesh
+
+    from bonecap.build_mri import warp_targets
+    from bonecap.model import Mesh
+
+    box = trimesh.creation.box((10, 10, 10))
+    m = Mesh(np.asarray(box.vertices), np.asarray(box.faces), "lps")
+    found = {n: m for n in ("femur_r", "radius_l", "sacrum", "hip_r", "l3", "scapula_l", "patella_r")}
+    assert set(warp_targets(found, trusted=False)) == {"femur_r", "radius_l"}
+    assert set(warp_targets(found, trusted=True)) == set(found)
+
+
 def test_forearm_stacks_that_do_not_fit_leave_the_paper_model(built):
     from bonecap.subject import read_subject
 
@@ -85,6 +100,12 @@ def test_subject_folder_layout(built, phantom):
     assert (out / "extracted/femur_r.ply").is_file()
     # every bone's origin is accounted for: warped onto its own extraction, carried, or placed (and said so)
     assert report["warp"].get("bones") or "not warped" in report["warp"].get("warning", "")
+    # the density rule's bones are carried by their neighbours, whatever their extraction (seeds from the
+    # template, not the user's)
+    from bonecap.segmentation.bones import default_rule
+
+    sources = {n: r.get("source", "") for n, r in (report["warp"].get("bones") or {}).items()}
+    assert not [n for n, src in sources.items() if default_rule(n) == "density" and src == "own target"]
     # every marker of the set the static trial holds is bound from it
     assert report["markers_bound"] >= 57
     assert sum(m.source == "static" for m in subj.markers.values()) >= 57

@@ -582,6 +582,31 @@ def test_long_bone_seed_lines_run_through_the_shaft():
     assert not tm.contains((np.array(on_joint_line) - b.bone_to_world[:3, 3]) @ b.bone_to_world[:3, :3]).any()
 
 
+def test_a_density_bone_seed_reaches_every_slab_of_the_bone():
+    """A density bone's seed runs through its sections' centres, slab by slab: every 10 mm of the template
+    hip bone's and scapula's height lies within the seed margin of the line (with their joint centres and
+    one centroid alone, parts of them lay 55-106 mm beyond those: slices never searched), and the line
+    stays ordered along z."""
+    from bonecap.build_mri import DENSITY_SEED_SLAB_MM, MODEL_TO_LPS, bone_seeds
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+    seeds = bone_seeds(sk, MODEL_TO_LPS, margin_mm=20.0)
+    for bone in ("hip_r", "scapula_l", "sacrum"):
+        W = sk.world_mesh(bone).vertices @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3]
+        line = seeds[bone]
+        assert np.all(np.diff(line[:, 2]) <= 0), bone                    # head to feet
+        # every slab of the bone has a seed point within half a slab (the margin is 20 mm)
+        for z0 in np.arange(W[:, 2].min(), W[:, 2].max(), DENSITY_SEED_SLAB_MM):
+            assert np.abs(line[:, 2] - z0).min() <= DENSITY_SEED_SLAB_MM, (bone, z0)
+        # the joint centres and the centroid alone leave part of the bone beyond the 20 mm margin
+        b = sk.bones[bone]
+        old = np.array([b.landmark_in_world(j) for j in b.joint_centres] + [sk.world_mesh(bone).vertices.mean(0)])
+        old_z = (old @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3])[:, 2]
+        gap = max(np.abs(old_z - z).min() for z in W[:, 2])
+        assert gap > 20.0, (bone, gap)
+
+
 def test_fill_holes_is_scipys_binary_fill_holes():
     """``density.fill_holes`` labels the background instead of scipy's repeated dilation: the same
     masks on rings with noise, a mask touching the slice edge, nested rings and an empty one."""
