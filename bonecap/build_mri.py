@@ -539,8 +539,11 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
 
     A long bone's seed runs from its proximal to its distal joint centre
     through the centres of its shaft's sections (:func:`shaft_line`: its
-    marrow lies along it); another bone's is its joint centres and its mesh
-    centroid, ordered along z.
+    marrow lies along it); another bone's is its joint centres, its mesh
+    centroid and the centres of its sections in slabs of
+    :data:`DENSITY_SEED_SLAB_MM` along z (a hip bone's or scapula's joints
+    and centroid left 55-106 mm of it beyond the search's margin), ordered
+    along z.
 
     Where the bone across a long bone's distal joint is not among ``bones``
     (too small to segment at whole-body resolution) and reaches past the
