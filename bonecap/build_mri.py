@@ -1357,8 +1357,9 @@ def warp_targets(targets: dict[str, Mesh], trusted: bool) -> dict[str, Mesh]:
     user's seeds or label map): at whole-body resolution the rule's regions
     cover 0.2-0.8 of such a bone (Dice against the oracle on phantoms), and
     where one passed the plausibility checks (a sacrum at Dice 0.72-0.78, once
-    its seed ran through its sections) its warp dragged the pelvis 5 mm off in
-    every trial (the binding median 2.32 -> 3.62 mm).
+    its seed ran through its sections) its warp dragged the pelvis and the
+    bones carried from it (a phantom's bone origins, median over the trials,
+    2.32 -> 7.71 mm; its marker binding 2.32 -> 3.62 mm).
 
     Parameters
     ----------
