@@ -585,8 +585,11 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         if b is None:
             continue
         pts = [b.landmark_in_world(j) for j in b.joint_centres]
-        if b.mesh is not None and not name.startswith(_LONG):
-            pts.append(b.mesh.transformed(b.bone_to_world).vertices.mean(axis=0))
+        # a density bone's mesh in world: its centroid, and below its sections' centres
+        Vd = b.mesh.transformed(b.bone_to_world).vertices if b.mesh is not None and not name.startswith(_LONG) \
+            else None
+        if Vd is not None:
+            pts.append(Vd.mean(axis=0))
         if name.startswith(_LONG) and len(pts) >= 2:
             V = b.mesh.transformed(b.bone_to_world).vertices if b.mesh is not None else None
             # the shaft's two ends only: proximal = first, distal = farthest from it
@@ -626,15 +629,14 @@ def bone_seeds(template: Skeleton, model_to_lps: np.ndarray, bones: tuple[str, .
         if not pts:
             continue
         p = np.asarray(pts) @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
-        if not name.startswith(_LONG) and b.mesh is not None:
+        if Vd is not None:
             # the centres of its sections, slab by slab: joint centres and one centroid reach only part of
             # a tall plate (an iliac wing, a scapula), and slices farther than the margin are not searched
-            W = b.mesh.transformed(b.bone_to_world).vertices @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
+            W = Vd @ model_to_lps[:3, :3].T + model_to_lps[:3, 3]
             z = W[:, 2]
-            for z0 in np.arange(z.min() + 0.5 * DENSITY_SEED_SLAB_MM, z.max(), DENSITY_SEED_SLAB_MM):
-                near = np.abs(z - z0) <= 0.5 * DENSITY_SEED_SLAB_MM
-                if near.sum() >= 10:
-                    p = np.vstack([p, W[near].mean(axis=0)])
+            slabs = [np.abs(z - z0) <= 0.5 * DENSITY_SEED_SLAB_MM
+                     for z0 in np.arange(z.min() + 0.5 * DENSITY_SEED_SLAB_MM, z.max(), DENSITY_SEED_SLAB_MM)]
+            p = np.vstack([p] + [W[near].mean(axis=0)[None] for near in slabs if near.sum() >= 10])
         # a long bone's stays proximal -> distal (segment_bones: past the proximal end lies its head)
         out[name] = p if name.startswith(_LONG) else p[np.argsort(-p[:, 2])]
     return out

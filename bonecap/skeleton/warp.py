@@ -692,10 +692,9 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
     base = _apply(T, _check_points("src_world", src_world))
     tv = _check_points("target_vertices", target_vertices)
     c = base.mean(axis=0)
-    _, sv, vt = np.linalg.svd(base - c, full_matrices=False)
-    if sv[0] < 3.0 * sv[1]:          # not a long bone: its ends are not along one axis
+    u = _long_axis(base)
+    if u is None:                    # not a long bone: its ends are not along one axis
         return T, None
-    u = vt[0]
     sb = (base - c) @ u
     # the target's vertices near the bone's axis only (a stray piece beside it says nothing of its length)
     radial = np.linalg.norm((base - c) - np.outer(sb, u), axis=1).max()
@@ -726,10 +725,11 @@ TRIMMED_START = 0.9
 SECOND_START_MARGIN = 0.1
 
 
-def _elongated(points: np.ndarray) -> bool:
-    """A long bone: its principal extent at least three times the next (as :func:`cover_extent` asks)."""
-    sv = np.linalg.svd(points - points.mean(axis=0), full_matrices=False, compute_uv=False)
-    return bool(sv[0] >= 3.0 * sv[1])
+def _long_axis(points: np.ndarray) -> np.ndarray | None:
+    """A long bone's axis (unit, its principal direction), or None when its principal extent is not at
+    least three times the next (:func:`cover_extent`, :func:`_warp_one`)."""
+    _, sv, vt = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)
+    return vt[0] if sv[0] >= 3.0 * sv[1] else None
 
 
 def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
@@ -754,7 +754,7 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     T_rigid, _ = rigid_icp(sub, target, init, rotation_prior=rotation_prior, trim=1.0)
     T_aff, res_aff = affine_icp(sub, target, T_rigid)
     flags: list[str] = []
-    if _elongated(src_world):
+    if _long_axis(src_world) is not None:
         # ... but the untrimmed pairs also pull the bone toward whatever its extraction ran on into: a
         # radius's search runs into the carpals (17-26 mm past its styloid on phantoms), and once the rigid
         # fit had slid a radius 8 mm along its axis that way, the affine stretched it onto the carpals
