@@ -301,14 +301,18 @@ def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
         pose_from_capsules(sk, mset, measured, iterations=0)
 
 
-def test_pose_inside_skin_turns_a_hand_back_under_its_skin():
+@pytest.mark.parametrize("true_deg", [8.0, 12.0])
+def test_pose_inside_skin_turns_a_hand_back_under_its_skin(true_deg, monkeypatch):
     """The skin of a hand turned 8 deg about the wrist (its bones' surface 5 mm out, closed): the skeleton's
     hand, at the template's angle, is turned into it, most of the way back; a skin elsewhere (a hand the
-    scan did not cover) leaves it, and bad settings raise."""
+    scan did not cover) leaves it, and bad settings raise. The skin's distance is sampled first over the box
+    a turn of ``SKIN_POSE_FIRST_DEG`` reaches: a fit that turns further is done again over the whole reach,
+    and gives what it gives then from the start (checked with a first box of 0.1 deg)."""
     from scipy import ndimage
     from scipy.spatial.transform import Rotation
     from skimage.measure import marching_cubes
 
+    from bonecap import build_mri
     from bonecap.build_mri import _rotate_about, _subtree, pose_inside_skin
     from bonecap.phantom.render import voxelise_labels
     from bonecap.skeleton.kinematics import proximal_joint
@@ -319,7 +323,7 @@ def test_pose_inside_skin_turns_a_hand_back_under_its_skin():
     _, c_par, _ = proximal_joint(sk, "carpals_r")
     Tp = sk.bones[sk.bones["carpals_r"].parent].bone_to_world
     wrist = Tp[:3, :3] @ c_par + Tp[:3, 3]
-    true_R = Rotation.from_rotvec(np.radians(8.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    true_R = Rotation.from_rotvec(np.radians(true_deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
     truth = load_template("default")
     _rotate_about(truth, hand, wrist, true_R)
     # the true hand's skin: its bones voxelised at 1 mm, dilated by 5 mm, meshed
@@ -339,12 +343,32 @@ def test_pose_inside_skin_turns_a_hand_back_under_its_skin():
         return np.degrees(Rotation.from_matrix(truth.bones["carpals_r"].bone_to_world[:3, :3].T
                                                @ s.bones["carpals_r"].bone_to_world[:3, :3]).magnitude())
 
-    assert err(sk) == pytest.approx(8.0, abs=1e-6)
-    out, report = pose_inside_skin(sk, skin, ("carpals_r",))
+    assert err(sk) == pytest.approx(true_deg, abs=1e-6)
+    # (12 deg leaves less than half the hand inside this thin skin: the default would not try)
+    import bonecap.phantom.render as render
+
+    grids = []
+
+    def counted(*args, **kw):
+        grids.append(args[2])
+        return voxelise_labels(*args, **kw)
+
+    monkeypatch.setattr(render, "voxelise_labels", counted)
+    out, report = pose_inside_skin(sk, skin, ("carpals_r",), min_inside=0.2)
     rep = report["carpals_r"]
     assert rep["applied"] == 1.0 and rep["shallow_after"] < rep["shallow_before"]
-    assert err(out) < 3.0, (err(out), rep)       # 2.05 deg: a 5 mm-thick skin leaves some play
-    assert err(sk) == pytest.approx(8.0, abs=1e-6)                     # the input is not changed
+    assert err(out) < 3.0, (err(out), rep)       # 8 deg: 2.05 left; a 5 mm-thick skin leaves some play
+    assert err(sk) == pytest.approx(true_deg, abs=1e-6)                # the input is not changed
+    # the first box only, unless the fit turned beyond 80 % of SKIN_POSE_FIRST_DEG (10 deg: 6.3 and 10.1 deg)
+    assert len(grids) == (1 if rep["turn_deg"] <= 8.0 else 2), (grids, rep)
+    if len(grids) == 2:
+        assert np.prod(grids[1]) > 3 * np.prod(grids[0])
+    grids.clear()
+    monkeypatch.setattr(build_mri, "SKIN_POSE_FIRST_DEG", 0.1)
+    again, report1 = pose_inside_skin(sk, skin, ("carpals_r",), min_inside=0.2)
+    assert len(grids) == 2 and report1["carpals_r"] == rep
+    np.testing.assert_allclose(again.bones["carpals_r"].bone_to_world, out.bones["carpals_r"].bone_to_world,
+                               atol=1e-6)
     for b in sk.names:
         if b not in hand:
             # the very same bones: build-subject registers the forearm stacks from the skeleton before this
