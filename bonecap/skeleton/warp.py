@@ -944,7 +944,9 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         bone near the targets, as build-subject does). With ``"placed"``, a
         bone carried by its neighbours that would move or turn beyond the
         own targets' bounds (``max_shift_mm``, ``max_turn_deg``) is kept where
-        it was placed (source "placed template"); when every joint it is
+        it was placed (source "placed template"); a bone hanging below an own
+        target through bones without one (a foot below its tibia) starts from
+        that target's rigid correction, as it was placed with it; when every joint it is
         carried onto was placed by an own target, by a bone carried onto
         such joints alone (down a chain), or by the chain between a fixed
         bone and its anchor (spread, or put where ``refine_chain`` says), the
@@ -1137,6 +1139,15 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
             rel = _nearest_relative(template, name, results, carried)
             # a placed template: the bone's own placed pose, corrected onto its warped joints
             M = init if start_from == "placed" or rel is None else rel
+            anc = _warped_ancestor(template, name, results, fixed) if start_from == "placed" and len(body) == 1 \
+                else None
+            if anc is not None:
+                # a bone hanging below an own target (a foot below its tibia, a hand below its radius) was
+                # placed with it (the limbs are re-posed as subtrees) and shares its placement's error: it
+                # turns with the ancestor's rigid correction, keeping the template's joint angle, where
+                # its one joint would only move it (the warped tibiae turned 2-3 deg from their placement
+                # on phantoms, and the feet, left as placed, lay that far from their shanks' frames)
+                M = np.asarray(results[anc]["T_rigid"], float)
             # two joints say little of a bone's turn when they lie close together on it: less than a
             # third of its size apart (a scapula's two, 35-40 mm on 150), it is only moved onto them
             ext = [_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
@@ -1400,6 +1411,19 @@ def _chains_to_fixed(sk: Skeleton, fixed: dict, results: dict, body_of: dict, kn
         else:
             chains.append((joints[::-1], seq[1:-1]))
     return chains
+
+
+def _warped_ancestor(sk: Skeleton, name: str, results: dict, fixed: dict) -> str | None:
+    """The nearest ancestor of ``name`` with an own target, reached through bones without one (and not
+    fixed); None if there is none."""
+    a = sk.bones[name].parent
+    while a is not None:
+        if a in results:
+            return a
+        if a in fixed:
+            return None
+        a = sk.bones[a].parent
+    return None
 
 
 def _nearest_relative(sk: Skeleton, name: str, results: dict, carried: dict) -> np.ndarray | None:
