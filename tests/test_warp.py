@@ -325,6 +325,24 @@ def pelvis_template(subdivisions: int = 3) -> Skeleton:
     return Skeleton(bones, world="model", metadata={"rigid_bodies": [["sacrum", "hip_r", "hip_l"]]})
 
 
+def femur_with_foot(radii, centre, joints) -> tuple[dict, np.ndarray, trimesh.Trimesh]:
+    """:func:`pelvis_template`'s bones with a knee at the right femur's distal end (380 mm down its axis) and a
+    target-less foot hanging there: an ellipsoid of ``radii`` about ``centre`` in its frame, ``joints`` its
+    joint centres. Returns the bones, the foot's frame and the sphere it was made from."""
+    template = pelvis_template()
+    bones = dict(template.bones)
+    Tf = template.bones["femur_r"].bone_to_world
+    end = np.array([0.0, -380.0, 0.0])                    # the femur's distal end, in its frame
+    Tc = Tf.copy()
+    Tc[:3, 3] = Tf[:3, :3] @ end + Tf[:3, 3]
+    s = trimesh.creation.icosphere(subdivisions=2)
+    bones["femur_r"] = Bone("femur_r", "hip_r", template.bones["femur_r"].mesh, Tf.copy(),
+                            joint_centres={"hip": [0, 0, 0], "knee": end})
+    bones["foot_r"] = Bone("foot_r", "femur_r", Mesh(np.asarray(s.vertices) * radii + centre, np.asarray(s.faces),
+                                                     "foot"), Tc, joint_centres=joints)
+    return bones, Tc, s
+
+
 def test_a_rigid_body_without_targets_is_carried_as_one():
     template = pelvis_template()
     # the person: the femora (and so the hip centres) 12 mm off the placed template, and 6 mm further apart
@@ -575,24 +593,13 @@ def test_a_bone_carried_onto_an_own_targets_joint_follows_it_past_the_shift_boun
     tibia 12 % longer: its end 45 mm beyond the placed one, its centre half that) is carried onto the
     warped joint, not kept where it was placed: joints placed by own targets, and by bones carried onto
     them (the toes below the foot), are trusted to twice ``max_shift_mm``."""
-    template = pelvis_template()
-    bones = dict(template.bones)
-    Tf = template.bones["femur_r"].bone_to_world
-    end = np.array([0.0, -380.0, 0.0])                    # the femur's distal end, in its frame
-    Tc = Tf.copy()
-    Tc[:3, 3] = Tf[:3, :3] @ end + Tf[:3, 3]
-    s = trimesh.creation.icosphere(subdivisions=2)
-    bones["femur_r"] = Bone("femur_r", "hip_r", template.bones["femur_r"].mesh, Tf.copy(),
-                            joint_centres={"hip": [0, 0, 0], "knee": end})
-    bones["foot_r"] = Bone("foot_r", "femur_r", Mesh(np.asarray(s.vertices) * [20, 30, 20] + [0, -35, 0],
-                                                     np.asarray(s.faces), "foot"), Tc,
-                           joint_centres={"knee": [0, 0, 0], "mtp": [0, -70, 0]})
+    bones, Tc, s = femur_with_foot([20, 30, 20], [0, -35, 0], {"knee": [0, 0, 0], "mtp": [0, -70, 0]})
     # and one more down the chain, carried onto the foot's joint (placed by a carried bone)
     Tt = Tc.copy()
     Tt[:3, 3] = Tc[:3, :3] @ [0.0, -70.0, 0.0] + Tc[:3, 3]
     bones["toes_r"] = Bone("toes_r", "foot_r", Mesh(np.asarray(s.vertices) * [15, 20, 15] + [0, -20, 0],
                                                     np.asarray(s.faces), "toes"), Tt, joint_centres={"mtp": [0, 0, 0]})
-    template = Skeleton(bones, world="model", metadata=template.metadata)
+    template = Skeleton(bones, world="model", metadata=pelvis_template().metadata)
     # the person's femora: 12 % longer along their axis, about the hip
     targets = {}
     for side in ("r", "l"):
@@ -623,19 +630,8 @@ def test_a_bone_below_an_own_target_turns_with_it():
     correction and keeps the template's joint angle (its frame relative to the femur's as the template
     has it), instead of keeping its placed orientation and only moving onto the knee. The pelvis, above
     the femur, is not turned."""
-    template = pelvis_template()
-    bones = dict(template.bones)
-    Tf = template.bones["femur_r"].bone_to_world
-    end = np.array([0.0, -380.0, 0.0])
-    Tc = Tf.copy()
-    Tc[:3, 3] = Tf[:3, :3] @ end + Tf[:3, 3]
-    s = trimesh.creation.icosphere(subdivisions=2)
-    bones["femur_r"] = Bone("femur_r", "hip_r", template.bones["femur_r"].mesh, Tf.copy(),
-                            joint_centres={"hip": [0, 0, 0], "knee": end})
-    bones["foot_r"] = Bone("foot_r", "femur_r", Mesh(np.asarray(s.vertices) * [60, 20, 25] + [40, -20, 0],
-                                                     np.asarray(s.faces), "foot"), Tc,
-                           joint_centres={"knee": [0, 0, 0]})
-    template = Skeleton(bones, world="model", metadata=template.metadata)
+    bones, _, _ = femur_with_foot([60, 20, 25], [40, -20, 0], {"knee": [0, 0, 0]})
+    template = Skeleton(bones, world="model", metadata=pelvis_template().metadata)
     hip = template.bones["femur_r"].landmark_in_world("hip")
     R = Rotation.from_rotvec(np.radians(6.0) * np.array([0.0, 0.6, 0.8])).as_matrix()
     targets = {}
