@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from bonecap.skeleton.generic import build_generic_skeleton
-from bonecap.skeleton.isb import (_reframe, distal_fibula_bearing, isb_frame, malleolar_frames, malleolar_turns,
-                                  reframe_bone, refresh_isb_frames)
+from bonecap.skeleton.isb import (_reframe, distal_fibula_bearing, distal_torsion, isb_frame, malleolar_frames,
+                                  malleolar_turns, reframe_bone, refresh_isb_frames)
 
 
 @pytest.fixture(scope="module")
@@ -153,3 +153,51 @@ def test_malleolar_turns_need_both_bones_measured_and_stay_bounded(generic):
         malleolar_turns(sk, generic, set(), max_deg=0.0)
     with pytest.raises(ValueError, match="4x4"):
         reframe_bone(sk.bones["tibia_r"], np.eye(3))
+
+
+def _shank_reshaped(generic, side, deg, scale, fibula_shift_mm=0.0):
+    """The generic skeleton with one shank's tibia and fibula turned ``deg`` about the tibia's long axis in its
+    frame and scaled by ``scale`` about its origin (frames unchanged), the fibula moved ``fibula_shift_mm``
+    anteriorly besides."""
+    import dataclasses
+
+    from bonecap.model import Mesh
+
+    sk = build_generic_skeleton()
+    c, s_ = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    R = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+    tib, fib = sk.bones["tibia" + side], sk.bones["fibula" + side]
+    M = np.linalg.solve(tib.bone_to_world, fib.bone_to_world)           # fibula frame -> tibia frame
+    w = fib.mesh.vertices @ M[:3, :3].T + M[:3, 3]
+    w = scale * w @ R.T + [fibula_shift_mm, 0.0, 0.0]
+    sk.bones["tibia" + side] = dataclasses.replace(tib, mesh=Mesh(scale * tib.mesh.vertices @ R.T, tib.mesh.faces,
+                                                                  tib.mesh.frame))
+    sk.bones["fibula" + side] = dataclasses.replace(fib, mesh=Mesh((w - M[:3, 3]) @ M[:3, :3], fib.mesh.faces,
+                                                                   fib.mesh.frame))
+    return sk
+
+
+def test_distal_torsion_reads_the_shank_s_turn_whatever_its_size(generic):
+    """A shank turned 7 deg (right) and -5 deg (left) about its long axis, 6 % larger or smaller than the
+    template's: the registration of both bones' distal surfaces reads the turns exactly; a fibula lying 1.5 mm
+    more anterior beside an unturned tibia (a person's, not a torsion) reads half what its centroid's bearing
+    does; nothing to read without both bones."""
+    for side, deg, scale in (("_r", 7.0, 1.06), ("_l", -5.0, 0.94)):
+        sk = _shank_reshaped(generic, side, deg, scale)
+        assert distal_torsion(sk, generic, side) == pytest.approx(deg, abs=0.01)
+        assert distal_torsion(generic, generic, side) == pytest.approx(0.0, abs=1e-9)
+    sk = _shank_reshaped(generic, "_r", 0.0, 1.0, fibula_shift_mm=1.5)
+    bearing = distal_fibula_bearing(sk, "_r") - distal_fibula_bearing(generic, "_r")
+    assert bearing > 2.0                                      # 2.7 deg
+    assert abs(distal_torsion(sk, generic, "_r")) < 0.6 * bearing   # 1.3 deg
+    # the turn applied puts the shank's frame where the template's distal bones say
+    assert malleolar_turns(_shank_reshaped(generic, "_r", 7.0, 1.06), generic, {"tibia_r", "fibula_r"})["tibia_r"] \
+        == pytest.approx(7.0, abs=0.01)
+    import dataclasses
+    bare = build_generic_skeleton()
+    bare.bones["fibula_r"] = dataclasses.replace(bare.bones["fibula_r"], mesh=None)
+    assert distal_torsion(bare, generic, "_r") is None
+    with pytest.raises(ValueError, match="side"):
+        distal_torsion(generic, generic, "r")
+    with pytest.raises(ValueError, match="keep"):
+        distal_torsion(generic, generic, "_r", keep=0.0)
