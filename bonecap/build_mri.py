@@ -1710,7 +1710,7 @@ SKIN_POSE_MAX_DEG = 30.0
 SKIN_POSE_MIN_INSIDE = 0.5
 #: The turn (deg) whose reach :func:`pose_inside_skin` samples the skin's distance over first; a fit that
 #: turns beyond 80 % of it is done again over the reach of ``max_deg``. The hands of six phantom builds
-#: turned 0.1-2.1 deg.
+#: turned 0.1-2.9 deg.
 SKIN_POSE_FIRST_DEG = 10.0
 
 

@@ -331,13 +331,15 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
     The template's tibia and fibula over ``window`` (fractions of the tibia's
     length from its distal end, along the tibia frame's Y), in its tibia
     frame, are registered onto the skeleton's, in its own: a rotation about
-    Y and a shift across it (the sections' sizes differ), by iterated
-    closest points from the turn of :func:`distal_fibula_bearing`, the worst
-    ``1 - keep`` of the pairs left out each round,
-    each round's fit the two-dimensional Procrustes one [1]_ of the
-    transverse coordinates. Both bones' surfaces take part: the fibula's
+    Y, and a shift and a size factor across it (a person's sections are
+    larger or smaller; heights are compared as fractions of each tibia's
+    length), by iterated closest points [1]_ from the turn of
+    :func:`distal_fibula_bearing`, the worst ``1 - keep`` of the pairs left
+    out each round, each round's fit the two-dimensional similarity of the
+    transverse coordinates [2]_. Both bones' surfaces take part: the fibula's
     place beside the tibia and the shape of the tibia's own section, where
-    :func:`distal_fibula_bearing` reads the fibula's centroid only.
+    :func:`distal_fibula_bearing` reads the fibula's centroid only (a fibula
+    lying 1.5 mm further forward: 1.3 deg here, 2.7 there).
 
     Parameters
     ----------
@@ -361,6 +363,8 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
     References
     ----------
     .. [1] Besl PJ, McKay ND (1992). A method for registration of 3-D shapes. IEEE PAMI 14(2):239-256.
+    .. [2] Umeyama S (1991). Least-squares estimation of transformation parameters between two point
+       patterns. IEEE PAMI 13(4):376-380.
     """
     from scipy.spatial import cKDTree
 
