@@ -303,8 +303,8 @@ def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
 
 @pytest.mark.parametrize("true_deg", [8.0, 12.0])
 def test_pose_inside_skin_turns_a_hand_back_under_its_skin(true_deg, monkeypatch):
-    """The skin of a hand turned 8 deg about the wrist (its bones' surface 5 mm out, closed): the skeleton's
-    hand, at the template's angle, is turned into it, most of the way back; a skin elsewhere (a hand the
+    """The skin of a hand turned 8 or 12 deg about the wrist (its bones' surface 5 mm out, closed): the
+    skeleton's hand, at the template's angle, is turned into it, most of the way back; a skin elsewhere (a hand the
     scan did not cover) leaves it, and bad settings raise. The skin's distance is sampled first over the box
     a turn of ``SKIN_POSE_FIRST_DEG`` reaches: a fit that turns further is done again over the whole reach,
     and gives what it gives then from the start (checked with a first box of 0.1 deg)."""

@@ -155,7 +155,7 @@ def test_malleolar_turns_need_both_bones_measured_and_stay_bounded(generic):
         reframe_bone(sk.bones["tibia_r"], np.eye(3))
 
 
-def _shank_reshaped(generic, side, deg, scale, fibula_shift_mm=0.0):
+def _shank_reshaped(side, deg, scale, fibula_shift_mm=0.0):
     """The generic skeleton with one shank's tibia and fibula turned ``deg`` about the tibia's long axis in its
     frame and scaled by ``scale`` about its origin (frames unchanged), the fibula moved ``fibula_shift_mm``
     anteriorly besides."""
@@ -183,15 +183,15 @@ def test_distal_torsion_reads_the_shank_s_turn_whatever_its_size(generic):
     more anterior beside an unturned tibia (a person's, not a torsion) reads half what its centroid's bearing
     does; nothing to read without both bones."""
     for side, deg, scale in (("_r", 7.0, 1.06), ("_l", -5.0, 0.94)):
-        sk = _shank_reshaped(generic, side, deg, scale)
+        sk = _shank_reshaped(side, deg, scale)
         assert distal_torsion(sk, generic, side) == pytest.approx(deg, abs=0.01)
         assert distal_torsion(generic, generic, side) == pytest.approx(0.0, abs=1e-9)
-    sk = _shank_reshaped(generic, "_r", 0.0, 1.0, fibula_shift_mm=1.5)
+    sk = _shank_reshaped("_r", 0.0, 1.0, fibula_shift_mm=1.5)
     bearing = distal_fibula_bearing(sk, "_r") - distal_fibula_bearing(generic, "_r")
     assert bearing > 2.0                                      # 2.7 deg
     assert abs(distal_torsion(sk, generic, "_r")) < 0.6 * bearing   # 1.3 deg
     # the turn applied puts the shank's frame where the template's distal bones say
-    assert malleolar_turns(_shank_reshaped(generic, "_r", 7.0, 1.06), generic, {"tibia_r", "fibula_r"})["tibia_r"] \
+    assert malleolar_turns(_shank_reshaped("_r", 7.0, 1.06), generic, {"tibia_r", "fibula_r"})["tibia_r"] \
         == pytest.approx(7.0, abs=0.01)
     import dataclasses
     bare = build_generic_skeleton()
