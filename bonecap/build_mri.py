@@ -1813,6 +1813,10 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
         def turned(x: np.ndarray) -> np.ndarray:
             return (V - centre) @ Rotation.from_rotvec(x).as_matrix().T + centre
 
+        def residuals(x: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.maximum(0.0, margin_mm - depth(turned(x))) / np.sqrt(len(V)),
+                                   np.sqrt(prior) * x])
+
         first = min(SKIN_POSE_FIRST_DEG, max_deg)
         depth = depth_field(first)
         d0 = depth(V)
@@ -1822,10 +1826,7 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
         if rep["inside_before"] < min_inside:
             continue
         for deg in (first, max_deg):
-            def residuals(x: np.ndarray) -> np.ndarray:
-                return np.concatenate([np.maximum(0.0, margin_mm - depth(turned(x))) / np.sqrt(len(V)),
-                                       np.sqrt(prior) * x])
-
+            # (residuals reads ``depth`` when called: the field of this round)
             x = least_squares(residuals, np.zeros(3), diff_step=1e-4, max_nfev=200).x
             if np.degrees(np.linalg.norm(x)) <= 0.8 * deg or deg >= max_deg:
                 break

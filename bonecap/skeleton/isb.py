@@ -279,27 +279,20 @@ def distal_fibula_bearing(skeleton: Skeleton, side: str, window: tuple[float, fl
         raise ValueError(f"side must be '_r' or '_l', got {side!r}")
     if not 0.0 <= window[0] < window[1] <= 1.0:
         raise ValueError(f"window must be two fractions 0 <= lo < hi <= 1, got {window!r}")
-    tib, fib = skeleton.bones.get("tibia" + side), skeleton.bones.get("fibula" + side)
-    if tib is None or fib is None or tib.mesh is None or fib.mesh is None:
+    slab = _distal_slab(skeleton, side, window)
+    if slab is None:
         return None
-    M = np.linalg.solve(tib.bone_to_world, fib.bone_to_world)        # fibula frame -> tibia frame
-    t = np.asarray(tib.mesh.vertices, float)
-    f = np.asarray(fib.mesh.vertices, float) @ M[:3, :3].T + M[:3, 3]
-    y0, y1 = float(t[:, 1].min()), float(t[:, 1].max())
-    lo, hi = y0 + window[0] * (y1 - y0), y0 + window[1] * (y1 - y0)
-    ts, fs = (t[:, 1] > lo) & (t[:, 1] < hi), (f[:, 1] > lo) & (f[:, 1] < hi)
-    if ts.sum() < 10 or fs.sum() < 10:
-        return None
-    v = f[fs].mean(axis=0) - t[ts].mean(axis=0)
+    t, f, _, _ = slab
+    v = f.mean(axis=0) - t.mean(axis=0)
     return float(np.degrees(np.arctan2(v[0], v[2])))
 
 
-def _distal_complex(skeleton: Skeleton, side: str, window: tuple[float, float]
-                    ) -> tuple[np.ndarray, float] | None:
-    """Surface points of the tibia and fibula over ``window`` (fractions of the tibia's length from its distal
-    end), in the tibia's frame but with Y measured from the tibia's distal end, the meshes subdivided once
-    (about four times the vertices), and the tibia's length; None without both meshes or with fewer than ten
-    points of either bone there."""
+def _distal_slab(skeleton: Skeleton, side: str, window: tuple[float, float], dense: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """The tibia's and the fibula's surface points over ``window`` (fractions of the tibia's length from its
+    distal end, along the tibia frame's Y), in the tibia's frame, with the tibia's distal end and length
+    along Y; ``dense``: the meshes subdivided once first (about four times the vertices; the same extent).
+    None without both meshes or with fewer than ten points of either bone there."""
     import trimesh
 
     tib, fib = skeleton.bones.get("tibia" + side), skeleton.bones.get("fibula" + side)
@@ -307,20 +300,18 @@ def _distal_complex(skeleton: Skeleton, side: str, window: tuple[float, float]
         return None
     M = np.linalg.solve(tib.bone_to_world, fib.bone_to_world)        # fibula frame -> tibia frame
 
-    def dense(m: Mesh) -> np.ndarray:
-        v, _ = trimesh.remesh.subdivide(np.asarray(m.vertices, float), np.asarray(m.faces))
-        return v
+    def points(m: Mesh) -> np.ndarray:
+        v = np.asarray(m.vertices, float)
+        return trimesh.remesh.subdivide(v, np.asarray(m.faces))[0] if dense else v
 
-    t = dense(tib.mesh)
-    f = dense(fib.mesh) @ M[:3, :3].T + M[:3, 3]
+    t = points(tib.mesh)
+    f = points(fib.mesh) @ M[:3, :3].T + M[:3, 3]
     y0, y1 = float(t[:, 1].min()), float(t[:, 1].max())
     lo, hi = y0 + window[0] * (y1 - y0), y0 + window[1] * (y1 - y0)
     ts, fs = t[(t[:, 1] > lo) & (t[:, 1] < hi)], f[(f[:, 1] > lo) & (f[:, 1] < hi)]
     if len(ts) < 10 or len(fs) < 10:
         return None
-    P = np.vstack([ts, fs])
-    P[:, 1] -= y0
-    return P, y1 - y0
+    return ts, fs, y0, y1 - y0
 
 
 def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
@@ -374,10 +365,14 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
         raise ValueError(f"window must be two fractions 0 <= lo < hi <= 1, got {window!r}")
     if iterations < 1 or not 0.0 < keep <= 1.0:
         raise ValueError(f"iterations >= 1 and keep in (0, 1] expected, got {iterations!r}, {keep!r}")
-    a_, b_ = _distal_complex(template, side, window), _distal_complex(skeleton, side, window)
+    a_, b_ = _distal_slab(template, side, window, dense=True), _distal_slab(skeleton, side, window, dense=True)
     if a_ is None or b_ is None:
         return None
-    (A, length_a), (B, length_b) = a_, b_
+    # both bones' points, heights from the tibia's distal end
+    A, B = np.vstack(a_[:2]), np.vstack(b_[:2])
+    A[:, 1] -= a_[2]
+    B[:, 1] -= b_[2]
+    length_a, length_b = a_[3], b_[3]
     a0 = A[:, [0, 2]] - A[:, [0, 2]].mean(axis=0)               # transverse (X, Z), centred
     B[:, [0, 2]] -= B[:, [0, 2]].mean(axis=0)
     B[:, 1] *= length_a / length_b                              # heights as the template's: a longer shank's too

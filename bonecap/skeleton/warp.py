@@ -1136,18 +1136,21 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                         B.append(joint_pos[(b, k)])
                         from_warped &= (b, k) in trusted
                         own.append((b, k) in known)
-            rel = _nearest_relative(template, name, results, carried)
-            # a placed template: the bone's own placed pose, corrected onto its warped joints
-            M = init if start_from == "placed" or rel is None else rel
+            # the start, corrected below onto its warped joints: a placed template's bone where it was placed,
+            # but a bone hanging below an own target (a foot below its tibia, a hand below its radius) was
+            # placed with it (the limbs are re-posed as subtrees) and shares its placement's error: it turns
+            # with the ancestor's rigid correction, keeping the template's joint angle, where its one joint
+            # would only move it (the warped tibiae turned 2-3 deg from their placement on phantoms, and the
+            # feet, left as placed, lay that far from their shanks' frames)
             anc = _warped_ancestor(template, name, results, fixed) if start_from == "placed" and len(body) == 1 \
                 else None
             if anc is not None:
-                # a bone hanging below an own target (a foot below its tibia, a hand below its radius) was
-                # placed with it (the limbs are re-posed as subtrees) and shares its placement's error: it
-                # turns with the ancestor's rigid correction, keeping the template's joint angle, where
-                # its one joint would only move it (the warped tibiae turned 2-3 deg from their placement
-                # on phantoms, and the feet, left as placed, lay that far from their shanks' frames)
                 M = np.asarray(results[anc]["T_rigid"], float)
+            elif start_from == "placed":
+                M = init
+            else:
+                rel = _nearest_relative(template, name, results, carried)
+                M = init if rel is None else rel
             # two joints say little of a bone's turn when they lie close together on it: less than a
             # third of its size apart (a scapula's two, 35-40 mm on 150), it is only moved onto them
             ext = [_apply(template.bones[b].bone_to_world, template.bones[b].mesh.vertices)
