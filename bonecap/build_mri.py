@@ -520,6 +520,13 @@ FOLLOW_FRACTION = 0.15
 #: and a phantom's ulna, followed, took twice the carpal voxels it had taken before (seed 1: 110 -> 222).
 FOLLOWED_ENDS = ("tibia", "fibula")
 
+#: Those of :data:`FOLLOWED_ENDS` whose distal end is a free tip, not a joint: the fibula's lateral
+#: malleolus narrows to its point beside the talus, where the search takes the talus's marrow with the
+#: tip's sections and the continuity walk drops them all (a phantom's fibula ended 10 mm short of its
+#: point, its malleolus landmark 5 mm up the shaft); its tip is tracked after the walk
+#: (:func:`bonecap.segmentation.bones._extend_tip`). The tibia's end is its plafond over the talus.
+FOLLOWED_TIPS = ("fibula",)
+
 #: The long bones whose proximal end is a head in a density-rule bone's socket, followed past the
 #: search into it (:func:`bone_seeds`' ``heads``; :func:`bonecap.segmentation.bones._follow_head`): the
 #: femoral head in the acetabulum, the humeral head on the glenoid.
@@ -947,6 +954,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
             seed_map = bone_seeds(posed, np.eye(4), followed=follow, heads=heads)
             seg_settings["follow_mm"] = follow
             seg_settings["follow_head_mm"] = heads
+            seg_settings["follow_tips"] = [n for n in follow if n[:-2] in FOLLOWED_TIPS]
         lap("seeds")
         bar.update()
 
@@ -997,8 +1005,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     spine_qc: dict[str, Any] = {}
     if targets:
         # a user's label map says nothing of where it was looked for: no cut
-        cut = unseen_ends(targets, seed_map, vols, margin_mm=seg_settings.get("margin_mm", 20.0)) \
-            if labels is None else {}
+        cut = unseen_ends(targets, seed_map, vols, margin_mm=seg_settings.get("margin_mm", 20.0),
+                          tips=FOLLOWED_TIPS if seg_settings.get("follow_tips") else ()) if labels is None else {}
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
@@ -1273,7 +1281,7 @@ def personal_labels(meshes: list[tuple[Mesh, int]], affine: np.ndarray, shape, v
 
 
 def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: list[Volume], *,
-                margin_mm: float = 20.0) -> dict[str, list[tuple[np.ndarray, float]]]:
+                margin_mm: float = 20.0, tips: tuple[str, ...] = ()) -> dict[str, list[tuple[np.ndarray, float]]]:
     """Where each long bone's extraction ends because the search did, not the bone: half-spaces for the warp.
 
     The cortical rule looks for a long bone on the slices its seed polyline
@@ -1289,7 +1297,11 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
     moved with them). The half-space covers the extraction's last slice
     pitch (its cap, ``normal . p > offset``, LPS); the warp then
     extrapolates the template there (:func:`bonecap.skeleton.warp.warp_skeleton`'s
-    ``unseen``).
+    ``unseen``). A bone that ends in a free tip (``tips``), labelled past its
+    search's last slice, was tracked there to its point
+    (:func:`bonecap.segmentation.bones._extend_tip`): that end is its own.
+    Other bones followed past their search stop at their joint, past which
+    they may go on (the medial malleolus beside the talus): a cut.
 
     Parameters
     ----------
@@ -1301,6 +1313,8 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
         The axial stations (their slices' z and pitch).
     margin_mm : float
         How far past a polyline's ends the search went.
+    tips : tuple of str
+        Bone names without their side suffix (:data:`FOLLOWED_TIPS`).
 
     Returns
     -------
@@ -1328,10 +1342,12 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
         lo, hi = max(z.min() - margin_mm, fov_lo), min(z.max() + margin_mm, fov_hi)
         ez = mesh.vertices @ u
         cuts = []
-        # labelled on the last slice searched: its section reaches half a pitch past that slice's centre
-        if ez.min() < lo + 0.5 * dz + 1.0:
+        # labelled on the last slice searched: its section reaches half a pitch past that slice's centre;
+        # a tip tracked a slice or more past it ended there (past the images' end nothing is labelled)
+        tip = name[:-2] in tips
+        if ez.min() < lo + 0.5 * dz + 1.0 and not (tip and fov_lo < lo and ez.min() < lo - 0.5 * dz - 1.0):
             cuts.append((-u, -(float(ez.min()) + dz)))
-        if ez.max() > hi - 0.5 * dz - 1.0:
+        if ez.max() > hi - 0.5 * dz - 1.0 and not (tip and hi < fov_hi and ez.max() > hi + 0.5 * dz + 1.0):
             cuts.append((u.copy(), float(ez.max()) - dz))
         if cuts:
             out[name] = cuts

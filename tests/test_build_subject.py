@@ -798,6 +798,12 @@ def test_unseen_ends_mark_where_the_search_cut_a_long_bone():
     cuts = unseen_ends({"tibia_r": rod(92.0, 246.0)}, seeds, [station(0.0, 50)])
     assert [np.round(n).tolist() for n, _ in cuts["tibia_r"]] == [[0.0, 0.0, 1.0]]
     assert unseen_ends({"tibia_r": rod(78.5, 280.0)}, seeds, [station(0.0, 50), station(200.0, 50, axis=0)]) == {}
+    # labelled a slice past the search (z 72.5-77.5): a tip tracked to its point ends there, a joint's follow
+    # is cut (what lies past the talus's dome is the malleolus); ending on the last slice searched, a tip is cut too
+    seeds["fibula_r"] = seeds["tibia_r"]
+    past = unseen_ends({"tibia_r": rod(72.5, 280.0), "fibula_r": rod(72.5, 280.0)}, seeds, vols, tips=("fibula",))
+    assert list(past) == ["tibia_r"]
+    assert list(unseen_ends({"fibula_r": rod(78.5, 280.0)}, seeds, vols, tips=("fibula",))) == ["fibula_r"]
 
 
 def test_no_mri_trunk_and_arms_against_the_truth(phantom, tmp_path):

@@ -759,6 +759,70 @@ def test_a_long_bone_cut_by_its_search_is_followed_to_its_joint(fat):
     assert np.array_equal(short, cut)
 
 
+def _tipped_bone_stack(K: int = 30, seed: int = 7, beside_tip: bool = False):
+    """A fibula-like bone from slice K-1 down to its point in an axial stack of 5 mm slices, 1 mm pixels.
+
+    Shaft (outer 8 px, cortex 3 px) down to slice 12, a malleolus widening to outer 12 px at slices 8-9,
+    then its tip narrowing (outer 7 px at slice 7, 4.5 px at slice 6; cortex 2 px) with nothing below.
+    With ``beside_tip``, bright tissue (fat, marrow-bright) lies under the point and grows downwards
+    (slice 5 a 3 px disc, slices 4-2 9 px), as at the phantom's malleolus. Returns the Volume, the body
+    mask and the true per-slice areas of the bone.
+    """
+    n = 100
+    rng = np.random.default_rng(seed)
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    body = np.hypot(ii - 50, jj - 50) < 46
+    data = np.full((n, n, K), 300.0)
+    data[~body] = 0.0
+    outer = {k: 8.0 for k in range(12, K)}
+    outer.update({11: 9.0, 10: 10.5, 9: 12.0, 8: 12.0, 7: 7.0, 6: 4.5})
+    true_area = np.zeros(K)
+    r = np.hypot(ii - 50, jj - 50)
+    for k, ro in outer.items():
+        bone = r < ro
+        sl = data[:, :, k]
+        sl[bone] = 80.0
+        sl[r < ro - (3.0 if ro > 7.5 else 2.0)] = 900.0
+        true_area[k] = bone.sum()
+    if beside_tip:
+        for k, rb in {5: 3.0, 4: 9.0, 3: 9.0, 2: 9.0}.items():
+            data[:, :, k][r < rb] = 900.0
+    data += rng.normal(0, 8, data.shape)
+    vol = Volume(data.astype(np.float32), np.diag([1.0, 1.0, 5.0, 1.0]))
+    return vol, np.repeat(body[:, :, None], K, axis=2), true_area
+
+
+@pytest.mark.parametrize("beside_tip", [False, True])
+def test_a_followed_bone_s_tip_is_kept_to_its_point(beside_tip):
+    """The fibula's line ends at slice 16: searched 10 mm past it, the bone is cut at slice 14 and
+    followed down. Where its malleolus narrows to its point the section drops to 0.34 of the largest,
+    which stops a track at a joint (slice 8 is the last kept). Given as a tip (``follow_tips``), the
+    narrowing sections are the bone's down to its point (slice 6), with their true areas; the bright
+    tissue under the point, once it grows again, is not taken. A tibia's drop into a talus that does
+    not narrow stays its joint when it is given as a tip."""
+    from bonecap.segmentation.bones import segment_bones
+
+    K = 30
+    vol, body, true_area = _tipped_bone_stack(K, beside_tip=beside_tip)
+    seeds = {"fibula_r": np.array([[50.0, 50.0, (K - 1) * 5.0], [50.0, 50.0, 16 * 5.0]])}
+    kw = dict(body_mask=body, progress=False, margin_mm=10.0, follow_mm={"fibula_r": 60.0})
+    joint, ids = segment_bones(vol, seeds, **kw)
+    a_joint = (joint == ids["fibula_r"]).sum(axis=(0, 1))
+    assert a_joint[:8].sum() == 0 and a_joint[8:].min() > 0
+    tip, ids = segment_bones(vol, seeds, follow_tips=["fibula_r"], **kw)
+    area = (tip == ids["fibula_r"]).sum(axis=(0, 1))
+    assert np.array_equal(area[8:], a_joint[8:])                   # above the drop nothing changes
+    assert area[:6].sum() == 0                                     # nothing past the point
+    assert np.all(np.abs(area[6:8] - true_area[6:8]) <= 0.2 * true_area[6:8]), (area[6:8], true_area[6:8])
+    # the plafond over a talus (0.41 of its section, the same size on the slices below): a joint still
+    tvol, tbody, _, ci = _flared_bone_stack(K)
+    tseeds = {"tibia_r": np.array([[ci, 60.0, (K - 1) * 5.0], [ci, 60.0, 20 * 5.0]])}
+    tkw = dict(body_mask=tbody, progress=False, margin_mm=10.0, follow_mm={"tibia_r": 60.0})
+    plain, tids = segment_bones(tvol, tseeds, **tkw)
+    as_tip, tids = segment_bones(tvol, tseeds, follow_tips=["tibia_r"], **tkw)
+    assert np.array_equal(as_tip, plain) and (plain == tids["tibia_r"]).sum(axis=(0, 1))[:8].sum() == 0
+
+
 def _head_in_socket_stack(seed: int = 11):
     """A femur-like bone in an axial stack of 5 mm slices, 1 mm pixels: a shaft (outer 15 mm, marrow
     11.5) up to a ball head (radius 22 mm, 2.5 mm cortex, centred at z = 70 mm, slice 14), and over the

@@ -774,3 +774,55 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
     assert err[False] > 20.0, err                                    # 24.6 mm: up the shaft
     # the extraction itself ends 14 mm short of the tip: covered, the landmark is about that far off (13.3)
     assert err[True] < 0.6 * err[False] and err[True] < 15.0, err
+
+
+def test_a_slender_bone_s_affine_is_a_rigid_motion_with_two_scales():
+    """A fibula-like rod (a flattened section with a knob at its tip, so that its turn is held) turned, moved,
+    5 % longer and 8 % thicker: ``axial_icp`` from the rigid fit, untrimmed, recovers the map (its scales to
+    0.005, the surface to 0.1 mm, every vertex within 1 mm). Through ``warp_skeleton`` a slender template bone's affine stage is this two-scale fit: onto a
+    target also squashed 25 % along one slant across it (a blurred or sheared extraction), the transform keeps
+    one scale across the bone where a general affine takes the squash (three different stretches). The
+    template's fibula is slender; its ulna, radius, femur, tibia and humerus are not."""
+    from bonecap.skeleton.template import load_template
+    from bonecap.skeleton.warp import SLENDER_RATIO, _slender, axial_icp
+
+    rod = _tapered_rod(340.0)
+    V = np.asarray(rod.vertices) * [1.0, 0.7, 1.0]
+    knob = (V[:, 2] < 40.0) & (V[:, 0] > 0)
+    V[knob, 0] *= 1.6                                        # the malleolus bulges to one side
+    F = np.asarray(rod.faces)
+    assert _slender(V)
+    c = V.mean(axis=0)
+    R = Rotation.from_euler("xyz", [3.0, -4.0, 6.0], degrees=True).as_matrix()
+    S = np.diag([1.08, 1.08, 1.05])                          # across, across, along (the rod's axis is z)
+    T = np.eye(4)
+    T[:3, :3] = R @ S
+    T[:3, 3] = c + [4.0, -2.0, 5.0] - R @ S @ c
+    target = Mesh(V @ T[:3, :3].T + T[:3, 3], F, "lps")
+    T_r, _ = rigid_icp(V, target)
+    # every pair kept: along a shaft only the ends hold the length, and trimming drops them first
+    T_x, res = axial_icp(V, target, init=T_r, trim=1.0)
+    assert res.mean() < 0.1
+    np.testing.assert_allclose(np.sort(np.linalg.svd(T_x[:3, :3], compute_uv=False)), [1.05, 1.08, 1.08], atol=0.005)
+    # (the rings of this mesh lie 2.8 mm apart along the shaft: the fit may slide along it by a fraction of that)
+    err = np.linalg.norm(V @ T_x[:3, :3].T + T_x[:3, 3] - target.vertices, axis=1)
+    assert err.max() < 1.0, err.max()
+    # squashed along a slant across the bone: two scales still (one of them across), the affine three
+    u = np.array([1.0, 0.0, 0.35]) / np.linalg.norm([1.0, 0.0, 0.35])
+    Q = np.eye(3) - 0.25 * np.outer(u, u)
+    squashed = Mesh((V - c) @ Q.T + c, F, "lps")
+    sk = Skeleton({"fibula_r": Bone("fibula_r", None, Mesh(V, F, "fibula_r"), np.eye(4),
+                                    joint_centres={"top": [0.0, 0.0, 340.0]})}, world="model")
+    _, rep = warp_skeleton(sk, {"fibula_r": squashed}, init=np.eye(4), start_from="placed")
+    sv = np.sort(np.linalg.svd(np.asarray(rep["transforms"]["fibula_r"])[:3, :3], compute_uv=False))
+    T_a, _ = affine_icp(V, squashed, init=np.eye(4))
+    sva = np.sort(np.linalg.svd(T_a[:3, :3], compute_uv=False))
+    assert min(sv[1] - sv[0], sv[2] - sv[1]) < 1e-6, sv
+    assert min(sva[1] - sva[0], sva[2] - sva[1]) > 0.02, sva
+    template = load_template("default")
+    ratios = {}
+    for b in ("fibula_r", "ulna_r", "radius_r", "femur_r", "tibia_r", "humerus_r"):
+        v = template.bones[b].mesh.vertices
+        s_ = np.linalg.svd(v - v.mean(axis=0), compute_uv=False)
+        ratios[b] = s_[1] / s_[0]
+    assert [b for b, r in ratios.items() if r < SLENDER_RATIO] == ["fibula_r"], ratios

@@ -29,7 +29,7 @@ from __future__ import annotations
 import re
 import warnings
 from functools import partial
-from typing import Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 from scipy import ndimage
@@ -521,6 +521,7 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                   joint_zone_mm: float = 60.0, continuity: bool = True,
                   follow_mm: Mapping[str, float] | None = None,
                   follow_head_mm: Mapping[str, float] | None = None,
+                  follow_tips: Iterable[str] = (),
                   marrow_regions: dict | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """Label every seeded bone of an axial stack, slice by slice, by its rule.
 
@@ -582,6 +583,12 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         (femur, humerus), followed past the search up to this far (mm) while
         the head goes on, taking back what the socket's density rule took
         (:func:`_follow_head`).
+    follow_tips : iterable of str
+        Those of ``follow_mm`` whose distal end is a free tip (the fibula's
+        lateral malleolus): after the continuity walk, the sections past the
+        last one kept that go on narrowing are the bone's (:func:`_extend_tip`,
+        over at most 15 mm). For the others a drop in the section is their
+        joint, where the following stops.
     joint_zone_mm : float
         Two long bones whose polylines share an end point (a joint centre:
         femur and tibia at the knee) are split at the deepest valley of their summed
@@ -717,6 +724,7 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                 kk = volume.world_to_index(np.asarray(seeds[n], float).reshape(-1, 3))[:, 2]
                 yield n, (1 if kk[-1] >= kk[0] else -1), int(np.ceil(reach / float(sp[2])))
 
+    tips = set(follow_tips)
     for n, step, slices in to_follow(follow_mm):
         where = np.flatnonzero(searched[n])
         last = int(where.max() if step > 0 else where.min())
@@ -729,6 +737,11 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
     if continuity:
         _keep_continuous(labels, ids, crossed, pixel_mm)
+    # a free tip after the walk: its narrowing sections are tracked from the last one the walk kept
+    # (the search past the fibula's point took the talus's marrow with it, which the walk dropped)
+    for n, step, _ in to_follow({n: v for n, v in (follow_mm or {}).items() if n in tips}):
+        _extend_tip(labels, ids[n], n, step, int(np.ceil(_TIP_MM / float(sp[2]))), data, smooth, body_mask,
+                    interior, pixel_mm, opts)
     # the heads last: from the sections that continue the shaft (a stray section past the head would
     # start the track in the socket's roof)
     density_ids = [ids[n] for n in names if rule_of[n] == "density"]
@@ -746,6 +759,9 @@ _TRACK_MIN_OVERLAP = 0.5
 _TRACK_REACH_MM = 3.0
 _TRACK_WINDOW_MM = 2.0
 _TRACK_MARROW_TOP = 1.25
+# How far past a bone's last kept section its narrowing tip is tracked (:func:`_extend_tip`): the
+# fibula's lateral malleolus narrows from its widest section to its point over ~10-15 mm.
+_TIP_MM = 15.0
 
 
 def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step: int, max_slices: int,
@@ -774,8 +790,10 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     when it ended so, at a joint (or at the images' end): one that ran to
     ``max_slices`` or lost the marrow on the way followed something past the
     bone's end, and nothing of it is labelled. What lies past the stop
-    (the malleolus beside the talus) stays unlabelled: the warp extrapolates
-    it (:func:`bonecap.build_mri.unseen_ends`).
+    (the medial malleolus beside the talus) stays unlabelled: the warp
+    extrapolates it (:func:`bonecap.build_mri.unseen_ends`); a free tip (the
+    fibula's lateral malleolus) is tracked after the continuity walk
+    (:func:`_extend_tip`).
 
     The marrow is kept to the marrow's own brightness (``marrow_top`` times the
     90th percentile of the previous slice's marrow), and so is the section:
@@ -819,6 +837,77 @@ def _follow_distal_end(labels: np.ndarray, lid: int, name: str, last: int, step:
     # that ran to its limit, or lost the bone's marrow on the way, followed something else beyond the
     # bone's end (past the distal ulna the carpals, larger than its head, continue it slice after slice).
     return _commit_track(labels, lid, added_at, at_joint or not 0 <= k < K)
+
+
+def _extend_tip(labels: np.ndarray, lid: int, name: str, step: int, tip_slices: int, data: np.ndarray,
+                smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray, pixel_mm: float, opts: Mapping,
+                *, reach_mm: float = _TRACK_REACH_MM, window_mm: float = _TRACK_WINDOW_MM,
+                marrow_top: float = _TRACK_MARROW_TOP) -> int:
+    """Label a long bone's narrowing tip past its last section towards ``step`` (in place); how many slices.
+
+    For a bone that ends in a free point (the fibula's lateral malleolus): the
+    next slice's section is tracked from the last labelled one as
+    :func:`_follow_distal_end` tracks (:func:`_track_section`) and taken, with
+    the sections after it, only while each is smaller than the one before
+    (:func:`_tapering_tip`). A section no smaller than the last is another
+    bone's or the bone's own shaft cut off by the continuity walk
+    (:func:`_keep_continuous`), which is not undone here.
+    """
+    from skimage.morphology import disk
+
+    area = (labels == lid).sum(axis=(0, 1))
+    nz = np.flatnonzero(area)
+    if not len(nz) or tip_slices < 1:
+        return 0
+    last = int(nz.max() if step > 0 else nz.min())
+    k = last + step
+    if not 0 <= k < labels.shape[2]:
+        return 0
+    fp = disk(max(1, int(round(reach_mm / pixel_mm))))
+    win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
+    o = opts[name]
+    sec = labels[:, :, last] == lid
+    top = _section_marrow_top(smooth, interior, last, sec, o, marrow_top)
+    got = _track_section(labels, k, sec, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
+    if got is None or not got[0].any() or got[0].sum() >= sec.sum() or not _continues(got[0], sec, fp, 1.0,
+                                                                                        _TRACK_MIN_OVERLAP):
+        return 0
+    tip = _tapering_tip(labels, k, step, got[0], top, tip_slices, data, smooth, body_mask, interior, pixel_mm, o,
+                        win_fp, fp)
+    for kk, s_ in tip:
+        labels[:, :, kk][s_] = lid
+    return len(tip)
+
+
+def _tapering_tip(labels: np.ndarray, k: int, step: int, sec: np.ndarray, top: float, tip_slices: int,
+                  data: np.ndarray, smooth: np.ndarray, body_mask: np.ndarray, interior: np.ndarray,
+                  pixel_mm: float, o: Mapping, win_fp: np.ndarray, fp: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """The sections ``(slice, mask)`` of a bone's tip from its section ``sec`` on slice ``k``
+    (:func:`_extend_tip`); none when they are not a tip.
+
+    A tip narrows to its point: each of its sections is kept when the next one, tracked from it
+    (:func:`_track_section`), is smaller still, or when no marrow lies past it (or the images end),
+    up to ``tip_slices`` sections. The first section that the next one does not continue smaller
+    is not kept: a bone across a joint grows again past the drop (the talus's dome into its body),
+    and past a tip's point the track takes whatever bright tissue lies beside it (fat at the
+    phantom's malleolus, growing slice by slice).
+    """
+    K = labels.shape[2]
+    out: list[tuple[int, np.ndarray]] = []
+    prev, kk = sec, k
+    while len(out) < tip_slices:
+        nk = kk + step
+        if not 0 <= nk < K:
+            return out + [(kk, prev)]
+        got = _track_section(labels, nk, prev, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
+        if got is None or not got[0].any():
+            return out + [(kk, prev)]
+        nxt = got[0]
+        if nxt.sum() >= prev.sum() or not _continues(nxt, prev, fp, 1.0, _TRACK_MIN_OVERLAP):
+            return out
+        out.append((kk, prev))
+        prev, kk = nxt, nk
+    return out
 
 
 def _commit_track(labels: np.ndarray, lid: int, added: list[tuple[int, np.ndarray]], ended: bool) -> int:
