@@ -686,6 +686,17 @@ def test_section_continuity_on_its_box_equals_the_whole_slice():
     assert seen == {True, False}
 
 
+def _round_body(n: int, K: int, radius: float, seed: int):
+    """A round body (muscle 300, air 0) centred in n x n slices, K of them: the generator, the pixel
+    grids, the in-plane body mask and the stack (to be filled with bone)."""
+    rng = np.random.default_rng(seed)
+    ii, jj = np.mgrid[:n, :n].astype(float)
+    body = np.hypot(ii - n / 2, jj - n / 2) < radius
+    data = np.full((n, n, K), 300.0)
+    data[~body] = 0.0
+    return rng, ii, jj, body, data
+
+
 def _flared_bone_stack(K: int = 30, fat: bool = False, seed: int = 5):
     """A tibia-like bone from slice K-1 down to slice 8 in an axial stack of 5 mm slices, 1 mm pixels.
 
@@ -695,12 +706,7 @@ def _flared_bone_stack(K: int = 30, fat: bool = False, seed: int = 5):
     side with no cortex there (the distal tibia's subcutaneous face, its cortex too thin to show).
     Returns the Volume, the body mask and the true per-slice areas of the bone.
     """
-    n = 120
-    rng = np.random.default_rng(seed)
-    ii, jj = np.mgrid[:n, :n].astype(float)
-    body = np.hypot(ii - 60, jj - 60) < 54
-    data = np.full((n, n, K), 300.0)
-    data[~body] = 0.0
+    rng, ii, jj, body, data = _round_body(120, K, 54.0, seed)
     if fat:
         data[body & (np.hypot(ii - 60, jj - 60) >= 46)] = 1400.0
     ci = 60.0 + (35.0 if fat else 0.0)        # with fat: the epiphysis runs into the layer
@@ -768,12 +774,7 @@ def _tipped_bone_stack(K: int = 30, seed: int = 7, beside_tip: bool = False):
     (slice 5 a 3 px disc, slices 4-2 9 px), as at the phantom's malleolus. Returns the Volume, the body
     mask and the true per-slice areas of the bone.
     """
-    n = 100
-    rng = np.random.default_rng(seed)
-    ii, jj = np.mgrid[:n, :n].astype(float)
-    body = np.hypot(ii - 50, jj - 50) < 46
-    data = np.full((n, n, K), 300.0)
-    data[~body] = 0.0
+    rng, ii, jj, body, data = _round_body(100, K, 46.0, seed)
     outer = {k: 8.0 for k in range(12, K)}
     outer.update({11: 9.0, 10: 10.5, 9: 12.0, 8: 12.0, 7: 7.0, 6: 4.5})
     true_area = np.zeros(K)

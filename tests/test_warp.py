@@ -777,12 +777,13 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
 
 
 def test_a_slender_bone_s_affine_is_a_rigid_motion_with_two_scales():
-    """A fibula-like rod (a flattened section with a knob at its tip, so that its turn is held) turned, moved,
-    5 % longer and 8 % thicker: ``axial_icp`` from the rigid fit, untrimmed, recovers the map (its scales to
-    0.005, the surface to 0.1 mm, every vertex within 1 mm). Through ``warp_skeleton`` a slender template bone's affine stage is this two-scale fit: onto a
-    target also squashed 25 % along one slant across it (a blurred or sheared extraction), the transform keeps
-    one scale across the bone where a general affine takes the squash (three different stretches). The
-    template's fibula is slender; its ulna, radius, femur, tibia and humerus are not."""
+    """A fibula-like rod (a flattened section with a knob at its tip, so that its turn is held) turned,
+    moved, 5 % longer and 8 % thicker: ``axial_icp`` from the rigid fit, untrimmed, recovers the map (its
+    scales to 0.005, the surface to 0.1 mm, every vertex within 1 mm). Through ``warp_skeleton`` a slender
+    template bone's affine stage is this two-scale fit: onto a target squashed 25 % along a slant across
+    it (a blurred or sheared extraction), the transform keeps one scale across the bone where a general
+    affine takes the squash (three different stretches). The template's fibula is slender; its ulna,
+    radius, femur, tibia and humerus are not."""
     from bonecap.skeleton.template import load_template
     from bonecap.skeleton.warp import SLENDER_RATIO, _slender, axial_icp
 

@@ -2,8 +2,10 @@
 
 Kojima et al. warped a generic skeleton onto the bones extracted from a
 person's MRI with an affine transform plus Gaussian radial basis functions
-(their *RBFT*). Here, per bone: a rigid ICP, then an affine ICP, then
-corresponding surface samples (feature points, both ways so the warp cannot
+(their *RBFT*). Here, per bone: a rigid ICP, then an affine ICP (for a
+slender bone, the fibula, a rigid motion with one scale along the bone and one
+across it: a general affine is ill-posed across a section a few pixels wide),
+then corresponding surface samples (feature points, both ways so the warp cannot
 fold the template onto part of the target), and an RBF interpolant
 ``scipy.interpolate.RBFInterpolator(kernel="gaussian", degree=1)`` whose
 degree-1 polynomial is the affine part. The fit is refined coarse to fine
@@ -14,7 +16,8 @@ so is the Jacobian determinant (no folding).
 
 Public API
 ----------
-- :func:`rigid_icp` / :func:`affine_icp` ``(source_points, target_mesh, init=None, ...) -> (T, residuals)``
+- :func:`rigid_icp` / :func:`affine_icp` / :func:`axial_icp`
+  ``(source_points, target_mesh, init=None, ...) -> (T, residuals)``
 - :func:`feature_points` ``(template_mesh, target_mesh, n=1000, ...) -> (src, dst)``
 - :class:`Warp`, :func:`fit_warp` ``(src, dst, *, kernel_width_mm=40, smoothing=1e-3, ...) -> Warp``
 - :func:`initial_transform` ``(template, targets) -> 4x4``
@@ -56,7 +59,7 @@ from bonecap.parallel import fork_map
 from bonecap.skeleton.isb import refresh_isb_frames
 from bonecap.skeleton.kinematics import joint_groups
 
-__all__ = ["rigid_icp", "affine_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
+__all__ = ["rigid_icp", "affine_icp", "axial_icp", "feature_points", "Warp", "fit_warp", "initial_transform",
            "cover_extent", "warp_skeleton"]
 
 
