@@ -180,8 +180,8 @@ def _shank_reshaped(side, deg, scale, fibula_shift_mm=0.0):
 def test_distal_torsion_reads_the_shank_s_turn_whatever_its_size(generic):
     """A shank turned 7 deg (right) and -5 deg (left) about its long axis, 6 % larger or smaller than the
     template's: the registration of both bones' distal surfaces reads the turns exactly; a fibula lying 1.5 mm
-    more anterior beside an unturned tibia (a person's, not a torsion) reads half what its centroid's bearing
-    does; nothing to read without both bones."""
+    more anterior beside an unturned tibia (a person's, not a torsion) reads 0.6 of what its centroid's bearing
+    does (the bones weighted alike); nothing to read without both bones."""
     for side, deg, scale in (("_r", 7.0, 1.06), ("_l", -5.0, 0.94)):
         sk = _shank_reshaped(side, deg, scale)
         assert distal_torsion(sk, generic, side) == pytest.approx(deg, abs=0.01)
@@ -189,7 +189,7 @@ def test_distal_torsion_reads_the_shank_s_turn_whatever_its_size(generic):
     sk = _shank_reshaped("_r", 0.0, 1.0, fibula_shift_mm=1.5)
     bearing = distal_fibula_bearing(sk, "_r") - distal_fibula_bearing(generic, "_r")
     assert bearing > 2.0                                      # 2.7 deg
-    assert abs(distal_torsion(sk, generic, "_r")) < 0.6 * bearing   # 1.3 deg
+    assert abs(distal_torsion(sk, generic, "_r")) < 0.65 * bearing  # 1.6 deg
     # the turn applied puts the shank's frame where the template's distal bones say
     assert malleolar_turns(_shank_reshaped("_r", 7.0, 1.06), generic, {"tibia_r", "fibula_r"})["tibia_r"] \
         == pytest.approx(7.0, abs=0.01)

@@ -327,8 +327,9 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
     length), by iterated closest points [1]_ from the turn of
     :func:`distal_fibula_bearing`, the worst ``1 - keep`` of the pairs left
     out each round, each round's fit the two-dimensional similarity of the
-    transverse coordinates [2]_. Both bones' surfaces take part: the fibula's
-    place beside the tibia and the shape of the tibia's own section, where
+    transverse coordinates [2]_, weighted so that each bone counts as much
+    as the other. Both bones' surfaces take part: the fibula's place beside
+    the tibia and the shape of the tibia's own section, where
     :func:`distal_fibula_bearing` reads the fibula's centroid only (a fibula
     lying 1.5 mm further forward: 1.3 deg here, 2.7 there).
 
@@ -370,6 +371,10 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
         return None
     # both bones' points, heights from the tibia's distal end
     A, B = np.vstack(a_[:2]), np.vstack(b_[:2])
+    # each bone counts as one: the tibia's nearly round section, with 3-4 times the fibula's surface, holds the
+    # turn poorly, and its surface's noise read as turn where the fibula's place beside it is the cue (over
+    # twelve phantom tibiae 1.28 deg RMS with the points counted alike, 1.15 with the bones weighted alike)
+    wA = np.r_[np.ones(len(a_[0])), np.full(len(a_[1]), len(a_[0]) / len(a_[1]))]
     A[:, 1] -= a_[2]
     B[:, 1] -= b_[2]
     length_a, length_b = a_[3], b_[3]
@@ -388,14 +393,14 @@ def distal_torsion(skeleton: Skeleton, template: Skeleton, side: str,
         P = np.column_stack([scale * a0 @ R2.T + shift, A[:, 1]])[:, [0, 2, 1]]
         d, j = tree.query(P)
         sel = d <= np.quantile(d, keep)
-        a, b = a0[sel], B[j[sel]][:, [0, 2]]
-        am, bm = a.mean(axis=0), b.mean(axis=0)
-        U, S, Vt = np.linalg.svd((a - am).T @ (b - bm))
+        a, b, w = a0[sel], B[j[sel]][:, [0, 2]], wA[sel]
+        am, bm = w @ a / w.sum(), w @ b / w.sum()
+        U, S, Vt = np.linalg.svd((w[:, None] * (a - am)).T @ (b - bm))
         D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
         R2 = Vt.T @ D @ U.T                                      # a -> b
         # the sections' size too (Umeyama's factor): a person's bones 6 % larger than the template's, fitted
         # without it, read 0.5 deg of turn they do not have
-        scale = float(np.sum(S * np.diag(D)) / np.sum((a - am) ** 2))
+        scale = float(np.sum(S * np.diag(D)) / np.sum(w[:, None] * (a - am) ** 2))
         th_new = float(np.arctan2(R2[0, 1], R2[0, 0]))
         shift = bm - scale * R2 @ am
         if abs(th_new - th) < 1e-9:
