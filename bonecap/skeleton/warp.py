@@ -369,7 +369,7 @@ def axial_icp(source_points, target_mesh, init=None, *, iterations: int = 60, to
     The affine stage of :func:`warp_skeleton` for a bone whose cross-section is
     a few pixels wide (:func:`_slender`, the fibula): a general affine's shears
     and stretches across such a bone are held by a section of ~15 mm only, and
-    its fits came out stretched 1.3-1.7 times along a slant across the shaft on
+    its fits came out stretched 1.2-1.7 times along a slant across the shaft on
     phantoms, which moved its landmarks several millimetres about the bone
     (the lateral malleolus) and tipped some over the plausibility limit.
     Two scales keep what a person's bone differs by (its length, its
