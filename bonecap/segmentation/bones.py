@@ -860,20 +860,14 @@ def _extend_tip(labels: np.ndarray, lid: int, name: str, step: int, tip_slices: 
     if not len(nz) or tip_slices < 1:
         return 0
     last = int(nz.max() if step > 0 else nz.min())
-    k = last + step
-    if not 0 <= k < labels.shape[2]:
-        return 0
     fp = disk(max(1, int(round(reach_mm / pixel_mm))))
     win_fp = disk(max(1, int(round(window_mm / pixel_mm))))
     o = opts[name]
     sec = labels[:, :, last] == lid
     top = _section_marrow_top(smooth, interior, last, sec, o, marrow_top)
-    got = _track_section(labels, k, sec, top, data, smooth, body_mask, interior, pixel_mm, o, win_fp)
-    if got is None or not got[0].any() or got[0].sum() >= sec.sum() or not _continues(got[0], sec, fp, 1.0,
-                                                                                        _TRACK_MIN_OVERLAP):
-        return 0
-    tip = _tapering_tip(labels, k, step, got[0], top, tip_slices, data, smooth, body_mask, interior, pixel_mm, o,
-                        win_fp, fp)
+    # from the last kept section itself: it heads the run when the next one is smaller (and is labelled already)
+    tip = _tapering_tip(labels, last, step, sec, top, tip_slices + 1, data, smooth, body_mask, interior, pixel_mm,
+                        o, win_fp, fp)[1:]
     for kk, s_ in tip:
         labels[:, :, kk][s_] = lid
     return len(tip)
@@ -885,9 +879,9 @@ def _tapering_tip(labels: np.ndarray, k: int, step: int, sec: np.ndarray, top: f
     """The sections ``(slice, mask)`` of a bone's tip from its section ``sec`` on slice ``k``
     (:func:`_extend_tip`); none when they are not a tip.
 
-    A tip narrows to its point: each of its sections is kept when the next one, tracked from it
-    (:func:`_track_section`), is smaller still, or when no marrow lies past it (or the images end),
-    up to ``tip_slices`` sections. The first section that the next one does not continue smaller
+    A tip narrows to its point: each of its sections, ``sec`` first, is kept when the next one, tracked
+    from it (:func:`_track_section`), is smaller still, or when no marrow lies past it (or the images
+    end), up to ``tip_slices`` sections. The first section that the next one does not continue smaller
     is not kept: a bone across a joint grows again past the drop (the talus's dome into its body),
     and past a tip's point the track takes whatever bright tissue lies beside it (fat at the
     phantom's malleolus, growing slice by slice).

@@ -178,6 +178,14 @@ def _as_surface(m, unseen=()) -> _Surface:
     return _Surface(_check_mesh("target_mesh", m), unseen)
 
 
+def _turn_jacobian(p: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): d(w x p)/dw for each point, the matrix ``-[p]x`` (a small turn w moves p by w x p)."""
+    J = np.zeros((len(p), 3, 3))
+    J[:, 0, 1], J[:, 0, 2], J[:, 1, 2] = p[:, 2], -p[:, 1], p[:, 0]
+    J[:, 1, 0], J[:, 2, 0], J[:, 2, 1] = -p[:, 2], p[:, 1], -p[:, 0]
+    return J
+
+
 def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point: float,
                 rot_offset: np.ndarray | None = None, prior: float = 0.0, axis: np.ndarray | None = None
                 ) -> np.ndarray:
@@ -197,10 +205,7 @@ def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point:
         rr = d - np.outer(sa, u)
         Jp = np.column_stack([np.cross(d, n), n, sa * (n @ u), (n * rr).sum(1)])          # (N, 8)
         rp = (n * (q - m)).sum(1)
-        skew = np.zeros((N, 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = d[:, 2], -d[:, 1], d[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -d[:, 2], d[:, 1], -d[:, 0]
-        Jq = np.concatenate([skew, np.broadcast_to(np.eye(3), (N, 3, 3)), (sa[:, None] * u)[:, :, None],
+        Jq = np.concatenate([_turn_jacobian(d), np.broadcast_to(np.eye(3), (N, 3, 3)), (sa[:, None] * u)[:, :, None],
                              rr[:, :, None]], axis=2).reshape(3 * N, 8)
         J = np.vstack([Jp, w_point * Jq])
         r = np.concatenate([rp, w_point * (q - m).ravel()])
@@ -217,10 +222,7 @@ def _solve_step(m: np.ndarray, q: np.ndarray, n: np.ndarray, kind: str, w_point:
         # U m ~ m + w x m + t: unknowns (w, t)
         Jp = np.hstack([np.cross(m, n), n])                                   # (N, 6)
         rp = (n * (q - m)).sum(1)
-        skew = np.zeros((N, 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = m[:, 2], -m[:, 1], m[:, 0]
-        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -m[:, 2], m[:, 1], -m[:, 0]
-        Jq = np.concatenate([skew, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=2).reshape(3 * N, 6)
+        Jq = np.concatenate([_turn_jacobian(m), np.broadcast_to(np.eye(3), (N, 3, 3))], axis=2).reshape(3 * N, 6)
         J = np.vstack([Jp, w_point * Jq])
         r = np.concatenate([rp, w_point * (q - m).ravel()])
         if prior > 0 and rot_offset is not None and axis is not None:
