@@ -319,6 +319,52 @@ def test_layers_are_ordered_for_the_renderer(subject):
     assert mapped[2][0].faces is subject.skeleton.bones[first].mesh.faces
 
 
+def test_an_opensim_model_s_bones_get_marrow_under_their_cortex():
+    """An OpenSim model's bones are outer surfaces only; the phantom makes each an endosteal surface at the
+    embedded description's cortical thickness (``with_marrow``), else they render as solid cortex, which no
+    bone rule segments. Every body with geometry gets one; a long bone's marrow fills a plausible part of it,
+    lies under its surface (mid-shaft by about the shaft's cortex), and renders as the ``marrow`` layer."""
+    import trimesh
+
+    from bonecap.phantom.subject import OSIM_CORTEX, with_marrow
+    from bonecap.skeleton.generic import _cortical_summary, load_generic_description
+    from bonecap.skeleton.opensim import read_osim
+
+    subj = _subject("rajagopal")
+    sk = subj.skeleton
+    with_mesh = [n for n, b in sk.bones.items() if b.mesh is not None]
+    assert sorted(sk.metadata["marrow"]) == sorted(with_mesh)
+    assert all(sk.bones[n].inner_mesh is not None for n in with_mesh)
+    assert [t for _, t in subj.layers()].count("marrow") == len(with_mesh)
+    desc = load_generic_description()
+    for name in ("femur_r", "tibia_l", "humerus_r"):
+        b = sk.bones[name]
+        outer = trimesh.Trimesh(b.mesh.vertices, b.mesh.faces, process=False)
+        inner = trimesh.Trimesh(b.inner_mesh.vertices, b.inner_mesh.faces, process=False)
+        assert inner.is_watertight and 0.2 < inner.volume / abs(outer.volume) < 0.9, name
+        # the inner surface's depth under the outer one, mid-shaft: about the diaphysis's cortex
+        u = np.linalg.svd(b.mesh.vertices - b.mesh.vertices.mean(0), full_matrices=False)[2][0]
+        pts = trimesh.sample.sample_surface(inner, 4000, seed=0)[0]     # (decimated: few vertices mid-shaft)
+        s = (pts - b.mesh.vertices.mean(0)) @ u
+        mid = np.abs(s) < 0.15 * np.ptp(b.mesh.vertices @ u)
+        depth = trimesh.proximity.closest_point(outer, pts[mid])[1]      # (an OpenSim mesh need not be closed)
+        cortex = _cortical_summary(desc, OSIM_CORTEX.get(name[:-2], name[:-2]))["diaphysis"]
+        assert 0.5 * cortex < np.median(depth) < 2.0 * cortex, (name, np.median(depth), cortex)
+    # bones that have an inner surface keep it; the input is not changed
+    import dataclasses
+
+    from bonecap.model import Skeleton
+
+    kneecap = dataclasses.replace(read_osim(RAJAGOPAL).bones["patella_r"], parent=None)
+    raw = Skeleton({"patella_r": kneecap}, world="opensim_ground")
+    once = with_marrow(raw)
+    assert once.metadata["marrow"] == ["patella_r"] and raw.bones["patella_r"].inner_mesh is None
+    again = with_marrow(sk)
+    assert again.metadata["marrow"] == [] and all(again.bones[n].inner_mesh is sk.bones[n].inner_mesh for n in with_mesh)
+    with pytest.raises(ValueError, match="voxel_mm"):
+        with_marrow(raw, voxel_mm=0.0)
+
+
 def test_slab_marching_cubes_equals_the_whole_grid(monkeypatch):
     """The body grid is meshed in slabs (memory): the result must be the whole grid's surface,
     closed, with the shared layers' vertices merged; checked on two analytic spheres (a float16

@@ -106,8 +106,12 @@ No breasts, genitals, ears or nose cartilage; the hand is a mitten whose
 fingers come from the bones' dilation; the skin may keep a few thin tunnels
 (genus > 0) where bone dilations arch (zygoma, fingers); where decimation
 pinched such a tunnel into a non-manifold edge the two sheets are split
-(coincident to 0.05 mm). Bones of an OpenSim template have no endosteal
-surface: they render as solid cortex (the renderer has no cancellous tissue).
+(coincident to 0.05 mm). Bones of an OpenSim template come without an
+endosteal surface; one is made at the embedded description's cortical
+thickness (:func:`with_marrow`), without it they rendered as solid cortex,
+dark in every slice, which no bone rule finds and no person has. Their
+cortex is uniform per zone (a long bone's ends, metaphyses and shaft), not
+the embedded skeleton's graded shell.
 An OpenSim model whose arms are geometry of the torso (gait2392) gets them
 inside the trunk. The arm abduction of the MRI pose is larger than in most
 real scans (see above).
@@ -140,6 +144,8 @@ __all__ = [
     "BODY_PARAM_RANGES",
     "GENERIC_DRAW_RANGES",
     "OSIM_SHAPE_RANGES",
+    "OSIM_CORTEX",
+    "with_marrow",
     "BONE_SHAPE_RANGE",
     "STATURE_RANGE",
     "PRESETS",
@@ -686,7 +692,110 @@ def build_subject_skeleton(params: dict[str, Any], generic="default") -> Skeleto
     if path.suffix.lower() != ".osim" or not path.is_file():
         raise InputError("--generic takes 'default' or an existing OpenSim .osim model", path)
     sk = read_osim(path)
-    return _individual_bone_shapes(_vary_osim_skeleton(sk, params["skeleton"], stature), params.get("bone_shape"))
+    sk = _individual_bone_shapes(_vary_osim_skeleton(sk, params["skeleton"], stature), params.get("bone_shape"))
+    preset_cfg = PRESETS.get(params.get("preset", "default"), {})
+    # (a coarser grid loses the shafts' marrow to the opening: the tiny preset caps the big bodies' grids instead)
+    return with_marrow(sk, max_voxels=2e6 if preset_cfg.get("bone_resolution", 1.0) == 1.0 else 1e6)
+
+
+#: An OpenSim body's bone, by its name without the side suffix, for the embedded description's cortical
+#: thicknesses (``cortical_thickness`` of the generic skeleton's description; a name not listed is looked up
+#: as it is): the pelvis's hip bones, the foot's tarsals, the torso's vertebrae (its ribs, girdles and skull
+#: have shells as thin), the hand's bones.
+OSIM_CORTEX = {"pelvis": "hip", "talus": "tarsal", "calcn": "tarsal", "toes": "tarsal", "torso": "vertebra",
+               "hand": "hand"}
+
+
+def with_marrow(sk: Skeleton, *, voxel_mm: float = 1.5, max_voxels: float = 2e6) -> Skeleton:
+    """Bones given as outer surfaces only (an OpenSim model's) get an endosteal surface: marrow inside a cortex.
+
+    The phantom renders a bone without an inner mesh as solid cortex, dark in
+    every slice: no bone rule finds that, and no person has it. Each bone's
+    inside is sampled on a grid (``voxel_mm``, coarser for large bodies so that
+    it holds at most ``max_voxels``), its depth below the surface measured
+    (Euclidean distance transform), and the level at the cortical thickness
+    meshed (:func:`bonecap.skeleton.shapes.field_to_mesh`, thin parts opened
+    away, as the embedded skeleton's cancellous cores). The thickness is the
+    embedded description's for that bone (:data:`OSIM_CORTEX`): a long bone's
+    ``diaphysis`` over the middle 60 % of its length (along its principal
+    axis), its ``metaphysis`` from there to 12 % from either end, its
+    ``epiphysis`` over the last 12 %; another bone's ``shell`` (or ``table``).
+    On a grid coarser than ~1.5 mm the opening takes the marrow of thin shafts
+    (a radius's, a humerus's) with the slivers.
+
+    Parameters
+    ----------
+    sk : Skeleton
+        Bones with meshes in their own frames; those with an inner mesh are kept.
+    voxel_mm, max_voxels : float
+        The grid.
+
+    Returns
+    -------
+    Skeleton
+        A copy whose bones have ``inner_mesh`` where a marrow cavity of some
+        volume remains (``metadata["marrow"]`` lists them).
+
+    Raises
+    ------
+    ValueError
+        If ``voxel_mm`` or ``max_voxels`` is not positive.
+    """
+    import dataclasses
+
+    from scipy import ndimage
+
+    from bonecap.phantom.render import voxelise_labels
+    from bonecap.skeleton.generic import _cortical_summary, load_generic_description
+    from bonecap.skeleton.shapes import Field, field_to_mesh
+
+    if not (voxel_mm > 0 and max_voxels > 0):
+        raise ValueError(f"voxel_mm and max_voxels must be positive, got {voxel_mm} and {max_voxels}")
+    desc = load_generic_description()
+    bones = dict(sk.bones)
+    done = []
+    for name, b in sk.bones.items():
+        if b.mesh is None or b.inner_mesh is not None:
+            continue
+        base = name[:-2] if name[-2:] in ("_r", "_l") else name
+        ct = _cortical_summary(desc, OSIM_CORTEX.get(base, base))
+        if not ct:
+            continue
+        V = np.asarray(b.mesh.vertices, float)
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        h = max(float(voxel_mm), float(np.cbrt(np.prod(hi - lo + 8.0) / max_voxels)))
+        lo = lo - 3.0 * h
+        shape = tuple(int(n) for n in np.ceil((hi + 3.0 * h - lo) / h) + 1)
+        A = np.eye(4)
+        A[:3, :3] *= h
+        A[:3, 3] = lo
+        inside = voxelise_labels([(b.mesh, 1)], A, shape, inplane_supersample=1, through_plane_samples=1) > 0
+        if inside.sum() < 8:
+            continue
+        sd = (ndimage.distance_transform_edt(~inside) - ndimage.distance_transform_edt(inside)).astype(np.float32) * h
+        if "diaphysis" in ct:
+            # along the principal axis: s in [0, 1] from one end to the other
+            u = np.linalg.svd(V - V.mean(axis=0), full_matrices=False)[2][0]
+            grid = np.stack(np.meshgrid(*[lo[i] + h * np.arange(n) for i, n in enumerate(shape)], indexing="ij"), -1)
+            t_along = grid @ u
+            s_lo, s_hi = float((V @ u).min()), float((V @ u).max())
+            sfrac = np.clip((t_along - s_lo) / (s_hi - s_lo), 0.0, 1.0)
+            end = np.minimum(sfrac, 1.0 - sfrac)
+            thick = np.where(end < 0.12, ct.get("epiphysis", 1.0),
+                             np.where(end < 0.2, ct.get("metaphysis", ct["diaphysis"]), ct["diaphysis"]))
+            thick = thick.astype(np.float32)
+        else:
+            thick = float(next(iter(v for k, v in ct.items() if isinstance(v, (int, float)))))
+        inner = field_to_mesh(Field(sd, lo, h), max(3000, len(b.mesh.faces)), offset=thick,
+                              min_component_volume=8.0, opening=True)
+        if inner is None:
+            continue
+        vi, fi = inner
+        bones[name] = dataclasses.replace(b, inner_mesh=Mesh(np.asarray(vi, float), np.asarray(fi), b.mesh.frame))
+        done.append(name)
+    out = dataclasses.replace(sk, bones=bones, metadata=dict(sk.metadata))
+    out.metadata["marrow"] = done
+    return out
 
 
 def _long_axis(sk: Skeleton, name: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -2575,8 +2684,8 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
         Stature; default drawn around 1700 mm (see :func:`draw_subject_params`).
     generic : str or path-like
         ``"default"`` (embedded generic skeleton) or an OpenSim ``.osim`` model.
-        OpenSim meshes have no endosteal surface: their bones render as solid
-        cortex.
+        OpenSim meshes have no endosteal surface: one is made at the embedded
+        description's cortical thickness (:func:`with_marrow`).
     preset : {"default", "tiny"}
         Grid spacing and mesh budgets (:data:`PRESETS`): ``default`` 3.5 mm,
         skin and fascia <= 200k triangles each; ``tiny`` 6 mm, <= 20k, with
