@@ -324,8 +324,11 @@ def test_an_opensim_model_s_bones_get_marrow_under_their_cortex():
     embedded description's cortical thickness (``with_marrow``), else they render as solid cortex, which no
     bone rule segments. Every body with geometry gets one; a long bone's marrow fills a plausible part of it,
     lies under its surface (mid-shaft by about the shaft's cortex), and renders as the ``marrow`` layer."""
+    import dataclasses
+
     import trimesh
 
+    from bonecap.model import Skeleton
     from bonecap.phantom.subject import OSIM_CORTEX, with_marrow
     from bonecap.skeleton.generic import _cortical_summary, load_generic_description
     from bonecap.skeleton.opensim import read_osim
@@ -351,10 +354,6 @@ def test_an_opensim_model_s_bones_get_marrow_under_their_cortex():
         cortex = _cortical_summary(desc, OSIM_CORTEX.get(name[:-2], name[:-2]))["diaphysis"]
         assert 0.5 * cortex < np.median(depth) < 2.0 * cortex, (name, np.median(depth), cortex)
     # bones that have an inner surface keep it; the input is not changed
-    import dataclasses
-
-    from bonecap.model import Skeleton
-
     kneecap = dataclasses.replace(read_osim(RAJAGOPAL).bones["patella_r"], parent=None)
     raw = Skeleton({"patella_r": kneecap}, world="opensim_ground")
     once = with_marrow(raw)

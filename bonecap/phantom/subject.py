@@ -776,8 +776,9 @@ def with_marrow(sk: Skeleton, *, voxel_mm: float = 1.5, max_voxels: float = 2e6)
         if "diaphysis" in ct:
             # along the principal axis: s in [0, 1] from one end to the other
             u = np.linalg.svd(V - V.mean(axis=0), full_matrices=False)[2][0]
-            grid = np.stack(np.meshgrid(*[lo[i] + h * np.arange(n) for i, n in enumerate(shape)], indexing="ij"), -1)
-            t_along = grid @ u
+            # (each grid node's coordinate along u, summed from the three axes' parts: no coordinate grid)
+            ax = [(lo[i] + h * np.arange(n)) * u[i] for i, n in enumerate(shape)]
+            t_along = ax[0][:, None, None] + ax[1][None, :, None] + ax[2][None, None, :]
             s_lo, s_hi = float((V @ u).min()), float((V @ u).max())
             sfrac = np.clip((t_along - s_lo) / (s_hi - s_lo), 0.0, 1.0)
             end = np.minimum(sfrac, 1.0 - sfrac)
