@@ -786,7 +786,7 @@ def with_marrow(sk: Skeleton, *, voxel_mm: float = 1.5, max_voxels: float = 2e6)
                              np.where(end < 0.2, ct.get("metaphysis", ct["diaphysis"]), ct["diaphysis"]))
             thick = thick.astype(np.float32)
         else:
-            thick = float(next(iter(v for k, v in ct.items() if isinstance(v, (int, float)))))
+            thick = float(next(v for v in ct.values() if isinstance(v, (int, float))))
         inner = field_to_mesh(Field(sd, lo, h), max(3000, len(b.mesh.faces)), offset=thick,
                               min_component_volume=8.0, opening=True)
         if inner is None:
