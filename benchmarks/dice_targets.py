@@ -1,5 +1,6 @@
-"""Issue #5's Dice targets over ``bonecap evaluate subject --json`` results: the slice rules' labels and
-the personal skeleton's label maps, side by side.
+"""Issue #5's Dice targets over ``bonecap evaluate subject --json`` results: the slice rules' labels, the
+personal skeleton's label maps and the refined maps (the personal map with the density rule's bones moved
+to the image, ``refined_station_<k>.nii.gz``), side by side.
 
 Usage::
 
@@ -8,8 +9,9 @@ Usage::
 
 Per evaluation and bone group (long bones: target Dice >= oracle - 0.03; pelvis, sacrum, scapulae,
 patellae: >= oracle - 0.06; the vertebrae by region, also >= oracle - 0.06): the median Dice of the
-rules' labels (``dice``), of the personal skeleton's maps (``personal_dice``) and of the oracle, and
-how many bones of the group meet the target with each. Prints a markdown table.
+rules' labels (``dice``), of the personal skeleton's maps (``personal_dice``), of the refined maps
+(``refined_dice``) and of the oracle, and how many bones of the group meet the target with each. Prints a
+markdown table.
 """
 
 from __future__ import annotations
@@ -49,10 +51,11 @@ def rows(path: Path) -> list[str]:
         def meet(key):
             return sum(1 for r in sel.values() if r.get(key) is not None and r[key] >= r["oracle_dice"] - margin)
 
-        has_personal = any("personal_dice" in r for r in sel.values())
+        has = {k: any(k in r for r in sel.values()) for k in ("personal_dice", "refined_dice")}
         out.append(f"| {name} | {group} | {len(sel)} | {med('dice')} | "
-                   f"{med('personal_dice') if has_personal else '-'} | {med('oracle_dice')} | {meet('dice')} | "
-                   f"{meet('personal_dice') if has_personal else '-'} |")
+                   + " | ".join(med(k) if has[k] else "-" for k in has)
+                   + f" | {med('oracle_dice')} | {meet('dice')} | "
+                   + " | ".join(str(meet(k)) if has[k] else "-" for k in has) + " |")
     return out
 
 
@@ -61,8 +64,9 @@ def main(argv: list[str]) -> int:
     if not argv:
         print(__doc__)
         return 2
-    print("| evaluation | bones | n | Dice, rules | Dice, personal | oracle | meet, rules | meet, personal |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print("| evaluation | bones | n | Dice, rules | Dice, personal | Dice, refined | oracle | meet, rules | "
+          "meet, personal | meet, refined |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for a in argv:
         p = Path(a)
         if not p.is_file():

@@ -233,8 +233,15 @@ def _subject_and_motion(out: Path, report: dict[str, Any], bar) -> None:
 
     long_dice = [r["dice"] for b, r in ev_s["bones"].items()
                  if default_rule(b) == "cortical" and np.isfinite(r.get("dice", np.nan))]
+    # the density rule's bones that the build refined from the personal map (hips, sacrum, vertebrae, scapulae,
+    # patellae)
+    refined = json.loads((out / "subject" / "stations.json").read_text()).get("refined_bones", [])
+    rows = [ev_s["bones"][b] for b in refined if np.isfinite(ev_s["bones"].get(b, {}).get("refined_dice", np.nan))]
     report["evaluation"] = {"subject": {**ev_s["summary"],
-                                        "long_bone_dice_median": float(np.median(long_dice)) if long_dice else None},
+                                        "long_bone_dice_median": float(np.median(long_dice)) if long_dice else None,
+                                        "refined_bones_dice_median": {
+                                            k: float(np.median([r[k] for r in rows])) if rows else None
+                                            for k in ("dice", "personal_dice", "refined_dice")}},
                             "motion": {"bones": len(deg), "deg_median_over_bones": float(np.median(deg)),
                                        "mm_median_over_bones": float(np.median(
                                            [v["mm_median"] for v in ev_m["overall"].values()]))}}
@@ -268,10 +275,12 @@ def format_report(report: dict[str, Any]) -> str:
                      f"{sb['markers_bound']} markers bound -> {o['subject']} ({sb['seconds']} s)")
         lines.append(f"animate: {', '.join(report['animate'])} -> {o['animate']}")
         es, em = ev["subject"], ev["motion"]
+        rb = es.get("refined_bones_dice_median") or {}
         fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
         lines.append(f"evaluate vs truth: long-bone Dice median {fmt(es.get('long_bone_dice_median'))} "
                      f"(all bones' {fmt(es.get('dice'))}, as the personal skeleton's label maps "
-                     f"{fmt(es.get('personal_dice'))}, oracle {fmt(es.get('oracle_dice'))}), "
+                     f"{fmt(es.get('personal_dice'))}, oracle {fmt(es.get('oracle_dice'))}; the density rule's "
+                     f"bones {fmt(rb.get('dice'))}, refined {fmt(rb.get('refined_dice'))}), "
                      f"personal surface {fmt(es.get('personal_surface_mean_mm'))} mm, "
                      f"bone orientation median {em['deg_median_over_bones']:.2f} deg, "
                      f"origin {em['mm_median_over_bones']:.1f} mm")

@@ -13,7 +13,8 @@ Subject (:func:`evaluate_subject`)
     Per bone: surface distances of the extracted and the personal meshes to
     the true meshes, the affine-only baseline, the segmentation Dice against
     the truth labels and the oracle's, the personal skeleton's as a label map
-    (``personal_dice``), marker binding errors, capsule centres.
+    (``personal_dice``) and the refined label maps (``refined_dice``), marker
+    binding errors, capsule centres.
 """
 
 from __future__ import annotations
@@ -179,7 +180,10 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
     reference, voxel by voxel, over all stations. Where build-subject wrote the
     personal skeleton's label maps beside ours (``personal_labels``, see
     :func:`bonecap.build_mri.personal_labels`), they are scored the same way
-    (``personal_dice``), on the same bones: those the rules segment.
+    (``personal_dice``), on the same bones: those the rules segment; and so are the
+    refined maps (``refined_labels``, :func:`bonecap.build_mri.refine_station_labels`:
+    the density rule's bones refined from the personal map by the image, in the
+    personal map's ids; ``refined_dice``).
     """
     import json
 
@@ -197,8 +201,8 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
     mdata = np.asarray(merged.data).astype(np.int32)
     m_inv = np.linalg.inv(merged.affine)
     names = list(ids_truth)
-    counts = np.zeros((len(names), 6), dtype=np.int64)
-    any_personal = False
+    counts = np.zeros((len(names), 8), dtype=np.int64)
+    any_personal = any_refined = False
     n_ids = max(ids_truth.values()) + 1
     ids_vec = np.array([ids_truth[b] for b in names])
     # our label ids -> the truth's ids for the same bone name (0 when unknown)
@@ -231,6 +235,14 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
                                 f"(shape {pers.shape} against {lab.shape}, or another affine)",
                                 subject_dir / st["personal_labels"])
             any_personal = True
+        refined = None
+        if st.get("refined_labels") and ids_personal:
+            rv = read_nifti(subject_dir / st["refined_labels"])
+            refined = np.asarray(rv.data).astype(np.int32)
+            if refined.shape != lab.shape:
+                raise DataError(f"the refined labels of station {st.get('index')} do not lie on its grid "
+                                f"(shape {refined.shape} against {lab.shape})", subject_dir / st["refined_labels"])
+            any_refined = True
         # station voxel -> nominal LPS -> true LPS -> merged voxel, slice by slice to bound memory
         M = m_inv @ to_true @ A
         ii, jj = np.meshgrid(np.arange(lab.shape[0]), np.arange(lab.shape[1]), indexing="ij")
@@ -246,6 +258,10 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
                 pl = personal_to_truth[np.clip(pers[:, :, k].ravel(), 0, len(personal_to_truth) - 1)]
                 counts[:, 4] += np.bincount(tl[(tl == pl) & (tl > 0)], minlength=n_ids)[ids_vec]
                 counts[:, 5] += (np.bincount(pl, minlength=n_ids) + np.bincount(tl, minlength=n_ids))[ids_vec]
+            if refined is not None:
+                rl = personal_to_truth[np.clip(refined[:, :, k].ravel(), 0, len(personal_to_truth) - 1)]
+                counts[:, 6] += np.bincount(tl[(tl == rl) & (tl > 0)], minlength=n_ids)[ids_vec]
+                counts[:, 7] += (np.bincount(rl, minlength=n_ids) + np.bincount(tl, minlength=n_ids))[ids_vec]
             if not (tl.any() or ul.any() or ol.any()):
                 continue
             # confusion counts per truth id, vectorised over the slice
@@ -263,6 +279,8 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
                      "oracle_dice": float(2 * c[2] / c[3])}
         if any_personal:
             out[bone]["personal_dice"] = float(2 * c[4] / c[5]) if c[5] else float("nan")
+        if any_refined:
+            out[bone]["refined_dice"] = float(2 * c[6] / c[7]) if c[7] else float("nan")
     return out
 
 
@@ -273,7 +291,8 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     -------
     dict
         ``bones``: per bone ``dice``, ``oracle_dice``, ``personal_dice`` (the personal skeleton's label
-        maps where build-subject wrote them, on the bones the rules segment), ``extracted_surface_mean_mm``/``_p95_mm``,
+        maps where build-subject wrote them, on the bones the rules segment), ``refined_dice`` (the
+        refined label maps, the same bones), ``extracted_surface_mean_mm``/``_p95_mm``,
         ``personal_surface_mean_mm``/``_p95_mm``, ``affine_only_surface_mean_mm``;
         ``markers``: per marker ``marker_binding_mm``; ``capsules``: centre errors;
         ``summary``: medians.
@@ -344,7 +363,8 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
         v = [r[key] for r in result["bones"].values() if key in r and np.isfinite(r[key])]
         return float(np.median(v)) if v else None
 
-    result["summary"] = {k: med(k) for k in ("dice", "oracle_dice", "personal_dice", "extracted_surface_mean_mm",
+    result["summary"] = {k: med(k) for k in ("dice", "oracle_dice", "personal_dice", "refined_dice",
+                                            "extracted_surface_mean_mm",
                                             "personal_surface_mean_mm", "affine_only_surface_mean_mm")}
     # the affine-only baseline exists only for bones warped onto their own extracted surface:
     # compare the warp with it on those bones alone (medians over different bone sets mislead)
@@ -362,7 +382,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
 
 def format_subject_table(result: dict[str, Any]) -> str:
     """A text table of :func:`evaluate_subject`."""
-    keys = [("dice", "dice"), ("oracle_dice", "oracle"), ("personal_dice", "pers_dice"),
+    keys = [("dice", "dice"), ("oracle_dice", "oracle"), ("personal_dice", "pers_dice"), ("refined_dice", "ref_dice"),
             ("extracted_surface_mean_mm", "extr_mm"),
             ("personal_surface_mean_mm", "pers_mm"), ("personal_surface_p95_mm", "pers_p95"),
             ("affine_only_surface_mean_mm", "affine_mm")]

@@ -160,10 +160,10 @@ def test_evaluate_subject_cli(built, phantom, cli):
 
 
 def test_personal_dice_of_the_oracle_is_the_oracles(built, phantom, tmp_path):
-    """evaluate subject scores the personal label maps as it scores the oracle: a subject folder whose
-    personal maps are the oracle's own station labels (voxel for voxel on the station grids, ids mapped
-    to its personal ids) gets personal_dice == oracle_dice on every bone; a map that does not lie on its
-    station's grid is refused."""
+    """evaluate subject scores the personal and the refined label maps as it scores the oracle: a subject
+    folder whose personal and refined maps are the oracle's own station labels (voxel for voxel on the
+    station grids, ids mapped to its personal ids) gets personal_dice == refined_dice == oracle_dice on
+    every bone; a map that does not lie on its station's grid is refused."""
     from bonecap.errors import DataError
     import shutil
 
@@ -185,11 +185,13 @@ def test_personal_dice_of_the_oracle_is_the_oracles(built, phantom, tmp_path):
         oracle = read_nifti(phantom / "truth" / "labels" / f"{t['name']}_oracle.nii.gz")
         mapped = to_personal[np.asarray(oracle.data).astype(int)]
         write_nifti(Volume(mapped, np.asarray(st["registered_affine"])), sub / st["personal_labels"])
+        write_nifti(Volume(mapped, np.asarray(st["registered_affine"])), sub / st["refined_labels"])
     r = evaluate_subject(sub, phantom / "truth")
     rows = [v for v in r["bones"].values() if "personal_dice" in v]
     assert len(rows) > 10
     for v in rows:
         assert v["personal_dice"] == pytest.approx(v["oracle_dice"], abs=1e-12)
+        assert v["refined_dice"] == pytest.approx(v["oracle_dice"], abs=1e-12)
     st = doc["stations"][0]
     moved = np.asarray(st["registered_affine"]).copy()
     moved[:3, 3] += 5.0
@@ -235,6 +237,34 @@ def test_personal_label_maps_lie_on_the_station_grids(built):
             assert abs(got - tm.volume) < rim, (name, got, tm.volume, rim)
             whole += 1
     assert whole, "no station holds a long bone whole"
+
+
+def test_refined_label_maps_change_only_the_density_rule_s_bones(built, phantom):
+    """build-subject writes a refined map per station on its grid: the personal map with the density
+    rule's bones (hips, sacrum, vertebrae, scapulae, patellae) moved to the image's evidence: every other
+    bone's voxels as the personal map has them, and no refined bone takes another bone's voxel."""
+    from bonecap.io.imaging import read_nifti
+    from bonecap.segmentation.bones import default_rule
+
+    out, _ = built
+    doc = json.loads((out / "stations.json").read_text())
+    refined = set(doc["refined_bones"])
+    assert refined == {b for b in doc["ids"] if default_rule(b) == "density"}
+    rid = [doc["personal_ids"][b] for b in refined]
+    changed = 0
+    for st in doc["stations"]:
+        ref = read_nifti(out / st["refined_labels"])
+        per = np.asarray(read_nifti(out / st["personal_labels"]).data).astype(int)
+        assert np.allclose(ref.affine, st["registered_affine"], atol=1e-4)
+        ref = np.asarray(ref.data).astype(int)
+        assert list(ref.shape) == st["shape"]
+        same = ~np.isin(per, rid) & ~np.isin(ref, rid)
+        assert np.array_equal(ref[same], per[same])
+        # a refined bone's voxels were its own or nobody's in the personal map
+        for i in rid:
+            assert np.isin(per[ref == i], [0, i]).all()
+        changed += int(np.count_nonzero(np.isin(per, rid) != np.isin(ref, rid)))
+    assert changed > 0
 
 
 def test_labels_path_reaches_the_truth(phantom, tmp_path):

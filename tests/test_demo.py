@@ -68,5 +68,9 @@ def test_demo_cli_on_the_default_template(tmp_path, cli):
     assert 0 < ev["subject"]["oracle_dice"] <= 1 and ev["subject"]["personal_surface_mean_mm"] > 0
     # the long bones' Dice, which the slice rules are for (the tiny preset's coarse slices: ~0.24)
     assert 0 < ev["subject"]["long_bone_dice_median"] < 1
+    # the density rule's bones, as the rule found them and refined from the personal map (the tiny preset's
+    # 15 mm slices: both 0.0 here, the phantoms of docs/benchmarks.md ~0.3 and ~0.85)
+    rb = ev["subject"]["refined_bones_dice_median"]
+    assert 0 <= rb["dice"] <= rb["refined_dice"] <= 1
     assert ev["motion"]["bones"] > 20 and np.isfinite(ev["motion"]["deg_median_over_bones"])
-    assert "evaluate vs truth" in res.stdout
+    assert "evaluate vs truth" in res.stdout and "refined" in res.stdout
