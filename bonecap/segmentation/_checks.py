@@ -31,3 +31,16 @@ def check_seed(seed_ij) -> np.ndarray:
     if seed.shape != (2,) or not np.isfinite(seed).all():
         raise ValueError(f"seed_ij must be two finite pixel coordinates (i, j), got {seed_ij!r}")
     return seed
+
+
+def check_body_mask(volume, body_mask) -> np.ndarray:
+    """The body of an axial stack: ``body_mask`` checked against ``volume.data``'s shape, or
+    :func:`bonecap.segmentation.skin.segment_body` of the volume when it is None."""
+    if body_mask is None:
+        from bonecap.segmentation.skin import segment_body
+
+        return segment_body(volume)
+    body_mask = np.asarray(body_mask, bool)
+    if body_mask.shape != np.shape(volume.data):
+        raise ValueError(f"body_mask must have the volume's shape {np.shape(volume.data)}, got {body_mask.shape}")
+    return body_mask

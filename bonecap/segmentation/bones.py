@@ -38,7 +38,7 @@ from scipy.optimize import linear_sum_assignment
 from bonecap.model import Volume
 from bonecap.progress import progress as _progress
 from bonecap.segmentation import cortical, density
-from bonecap.segmentation.skin import segment_body
+from bonecap.segmentation._checks import check_body_mask
 
 __all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones", "keep_continuous"]
 
@@ -626,11 +626,7 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         raise ValueError(f"unknown rule(s) {unknown}; use one of {RULES}")
     options = {str(k): dict(v) for k, v in (options or {}).items()}
     data = np.asarray(volume.data)
-    if body_mask is None:
-        body_mask = segment_body(volume)
-    body_mask = np.asarray(body_mask, bool)
-    if body_mask.shape != data.shape:
-        raise ValueError(f"body_mask must have the volume's shape {data.shape}, got {body_mask.shape}")
+    body_mask = check_body_mask(volume, body_mask)
     sp = volume.spacing
     pixel_mm = float(0.5 * (sp[0] + sp[1]))
 
@@ -1137,9 +1133,7 @@ def marrow_sections(volume: Volume, where: np.ndarray, *, body_mask: np.ndarray 
     bad = set(opts) - _MARROW_KEYS - _CONTOUR_KEYS
     if bad:
         raise ValueError(f"unknown option(s) {sorted(bad)} for the cortical rule")
-    body_mask = segment_body(volume) if body_mask is None else np.asarray(body_mask, bool)
-    if body_mask.shape != data.shape:
-        raise ValueError(f"body_mask must have the volume's shape {data.shape}, got {body_mask.shape}")
+    body_mask = check_body_mask(volume, body_mask)
     exclude = np.zeros(data.shape, bool) if exclude is None else np.asarray(exclude, bool)
     if exclude.shape != data.shape:
         raise ValueError(f"exclude must have the volume's shape {data.shape}, got {exclude.shape}")
