@@ -24,6 +24,19 @@ def test_drop_sparse_boundary_15_16():
         density.drop_sparse(c, min_neighbours=49)
 
 
+def test_drop_sparse_counts_the_48_neighbours_of_the_7x7_window():
+    """drop_sparse's counts equal a direct sum of the 48 shifted masks (pixels past the edge count as none),
+    at any density and with an odd image shape."""
+    rng = np.random.default_rng(4)
+    for p in (0.05, 0.3, 0.6, 0.95):
+        c = rng.random((37, 23)) < p
+        pad = np.pad(c, 3).astype(int)
+        counts = sum(pad[3 + di:3 + di + 37, 3 + dj:3 + dj + 23] for di in range(-3, 4) for dj in range(-3, 4)
+                     if (di, dj) != (0, 0))
+        for m in (1, 16, 30, 48):
+            assert np.array_equal(density.drop_sparse(c, min_neighbours=m), c & (counts >= m)), (p, m)
+
+
 def test_density_candidates_rank_within_the_body():
     """The top third by rank inside the body mask: air outside and a few very bright capsules do not shift it."""
     rng = np.random.default_rng(1)

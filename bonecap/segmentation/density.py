@@ -41,9 +41,9 @@ __all__ = ["density_candidates", "drop_sparse", "nearest_region", "density_thres
            "skin_band", "fill_holes"]
 
 _EIGHT = np.ones((3, 3), bool)
-# The 48-pixel neighbourhood of the rule: the 7x7 window without its centre.
-_NEIGHBOURS_48 = np.ones((7, 7), np.uint8)
-_NEIGHBOURS_48[3, 3] = 0
+# The 48-pixel neighbourhood of the rule is the 7x7 window without its centre: summed as a 7-pixel box
+# along each axis in turn (exact on uint8, at most 49) less the centre.
+_BOX_7 = np.ones(7, np.uint8)
 
 
 def density_candidates(image: np.ndarray, body_mask: np.ndarray, fraction: float = 1 / 3,
@@ -141,8 +141,12 @@ def drop_sparse(candidates: np.ndarray, min_neighbours: int = 16) -> np.ndarray:
     c = check_image(candidates, "candidates").astype(bool)
     if int(min_neighbours) != min_neighbours or not 0 <= min_neighbours <= 48:
         raise ValueError(f"min_neighbours must be an integer in 0..48, got {min_neighbours}")
-    counts = ndimage.correlate(c.view(np.uint8), _NEIGHBOURS_48, mode="constant", cval=0)
-    return c & (counts >= int(min_neighbours))
+    u = c.view(np.uint8)
+    # two 1-D passes instead of one 7x7 correlation: the same integers, ~5x faster (every slice of every
+    # station passes here, in the rule and in segmentation.refine)
+    box = ndimage.correlate1d(ndimage.correlate1d(u, _BOX_7, axis=0, mode="constant", cval=0), _BOX_7, axis=1,
+                              mode="constant", cval=0)
+    return c & ((box - u) >= int(min_neighbours))
 
 
 def nearest_region(candidates: np.ndarray, seed_ij, max_distance_px: float | None = None) -> np.ndarray:
