@@ -239,9 +239,11 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
         if st.get("refined_labels") and ids_personal:
             rv = read_nifti(subject_dir / st["refined_labels"])
             refined = np.asarray(rv.data).astype(np.int32)
-            if refined.shape != lab.shape:
+            if refined.shape != lab.shape or not np.allclose(rv.affine, np.asarray(st["registered_affine"], float),
+                                                             atol=1e-3):
                 raise DataError(f"the refined labels of station {st.get('index')} do not lie on its grid "
-                                f"(shape {refined.shape} against {lab.shape})", subject_dir / st["refined_labels"])
+                                f"(shape {refined.shape} against {lab.shape}, or another affine)",
+                                subject_dir / st["refined_labels"])
             any_refined = True
         # station voxel -> nominal LPS -> true LPS -> merged voxel, slice by slice to bound memory
         M = m_inv @ to_true @ A

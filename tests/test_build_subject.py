@@ -195,9 +195,10 @@ def test_personal_dice_of_the_oracle_is_the_oracles(built, phantom, tmp_path):
     st = doc["stations"][0]
     moved = np.asarray(st["registered_affine"]).copy()
     moved[:3, 3] += 5.0
-    write_nifti(Volume(read_nifti(sub / st["personal_labels"]).data, moved), sub / st["personal_labels"])
-    with pytest.raises(DataError, match="do not lie on its grid"):
-        evaluate_subject(sub, phantom / "truth")
+    for key in ("refined_labels", "personal_labels"):
+        write_nifti(Volume(read_nifti(sub / st[key]).data, moved), sub / st[key])
+        with pytest.raises(DataError, match=f"the {key.split('_')[0]} labels of station 1 do not lie on its grid"):
+            evaluate_subject(sub, phantom / "truth")
 
 
 def test_personal_label_maps_lie_on_the_station_grids(built):
