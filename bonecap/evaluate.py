@@ -169,6 +169,25 @@ def _surface_stats(est, truth, n_samples: int = 5000) -> tuple[float, float]:
     return float(d.mean()), float(np.percentile(d, 95))
 
 
+def _map_on_station(subject_dir: Path, st: dict, which: str, shape) -> np.ndarray | None:
+    """A station's ``<which>_labels`` map (``personal`` or ``refined``) as int32, None when it has none.
+
+    Scored voxel for voxel with the station's own labels, so it must lie on that grid
+    (its shape and registered affine): ``DataError`` otherwise."""
+    from bonecap.io.imaging import read_nifti
+
+    rel = st.get(f"{which}_labels")
+    if not rel:
+        return None
+    vol = read_nifti(subject_dir / rel)
+    data = np.asarray(vol.data).astype(np.int32)
+    if data.shape != tuple(shape) or not np.allclose(vol.affine, np.asarray(st["registered_affine"], float),
+                                                     atol=1e-3):
+        raise DataError(f"the {which} labels of station {st.get('index')} do not lie on its grid "
+                        f"(shape {data.shape} against {tuple(shape)}, or another affine)", subject_dir / rel)
+    return data
+
+
 def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[str, float]]:
     """Per bone Dice of our station labels and of the oracle, both against the truth labels.
 
@@ -224,27 +243,10 @@ def _station_label_dice(subject_dir: Path, truth_dir: Path) -> dict[str, dict[st
         oracle = np.asarray(read_nifti(truth_dir / "labels" / f"{t['name']}_oracle.nii.gz").data).astype(np.int32)
         if lab.shape != oracle.shape:
             continue
-        pers = None
-        if st.get("personal_labels") and ids_personal:
-            pv = read_nifti(subject_dir / st["personal_labels"])
-            pers = np.asarray(pv.data).astype(np.int32)
-            # scored voxel for voxel with the station's labels: the map must lie on that grid
-            if pers.shape != lab.shape or not np.allclose(pv.affine, np.asarray(st["registered_affine"], float),
-                                                          atol=1e-3):
-                raise DataError(f"the personal labels of station {st.get('index')} do not lie on its grid "
-                                f"(shape {pers.shape} against {lab.shape}, or another affine)",
-                                subject_dir / st["personal_labels"])
-            any_personal = True
-        refined = None
-        if st.get("refined_labels") and ids_personal:
-            rv = read_nifti(subject_dir / st["refined_labels"])
-            refined = np.asarray(rv.data).astype(np.int32)
-            if refined.shape != lab.shape or not np.allclose(rv.affine, np.asarray(st["registered_affine"], float),
-                                                             atol=1e-3):
-                raise DataError(f"the refined labels of station {st.get('index')} do not lie on its grid "
-                                f"(shape {refined.shape} against {lab.shape}, or another affine)",
-                                subject_dir / st["refined_labels"])
-            any_refined = True
+        pers = _map_on_station(subject_dir, st, "personal", lab.shape) if ids_personal else None
+        refined = _map_on_station(subject_dir, st, "refined", lab.shape) if ids_personal else None
+        any_personal |= pers is not None
+        any_refined |= refined is not None
         # station voxel -> nominal LPS -> true LPS -> merged voxel, slice by slice to bound memory
         M = m_inv @ to_true @ A
         ii, jj = np.meshgrid(np.arange(lab.shape[0]), np.arange(lab.shape[1]), indexing="ij")
