@@ -88,8 +88,10 @@ def bone_evidence(image: np.ndarray, body_mask: np.ndarray, pixel_mm: float, *, 
         Muscle-like: within this fraction of the muscle level; marrow: brighter
         than ``1 + muscle_band`` times it (or a candidate).
     skin_band_mm : float
-        The body's outer band: candidates touching it are fat, and the dark
-        partial-volume pixels at the skin are air, not cortex.
+        The body's outer band: the dark partial-volume pixels there are air at
+        the skin, not cortex, and the rule's candidates touching it are fat. A
+        pixel brighter than the marrow level counts wherever it lies (fat
+        included): only those within a pixel of a bone's prior are used.
 
     Returns
     -------
