@@ -240,7 +240,7 @@ def test_personal_label_maps_lie_on_the_station_grids(built):
     assert whole, "no station holds a long bone whole"
 
 
-def test_refined_label_maps_change_only_the_density_rule_s_bones(built, phantom):
+def test_refined_label_maps_change_only_the_density_rule_s_bones(built):
     """build-subject writes a refined map per station on its grid: the personal map with the density
     rule's bones (hips, sacrum, vertebrae, scapulae, patellae) moved to the image's evidence: every other
     bone's voxels as the personal map has them, and no refined bone takes another bone's voxel."""
