@@ -244,13 +244,13 @@ def refine_labels(volume: Volume, prior: np.ndarray, bones: Mapping[str, int], *
     pixel_mm = float(0.5 * (sp[0] + sp[1]))
     refine_ids = np.array(sorted(int(i) for i in bones.values()), dtype=np.int64)
 
-    out = np.where(np.isin(prior, refine_ids), 0, prior).astype(np.uint16)
+    present = np.isin(prior, refine_ids)
+    out = np.where(present, 0, prior).astype(np.uint16)
     if keep is not None:
         kept = keep > 0
         out[kept] = keep[kept]
     else:
         kept = np.zeros(data.shape, bool)
-    present = np.isin(prior, refine_ids)
     for k in np.flatnonzero(present.any(axis=(0, 1))):
         pk = prior[:, :, k]
         img = ndimage.gaussian_filter(data[:, :, k].astype(np.float32), sigma_px, mode="nearest") \
