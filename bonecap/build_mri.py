@@ -1179,10 +1179,10 @@ def refine_station_labels(station_pieces: list, priors: list[np.ndarray], statio
     rule's sections or does better, Dice against the truth on the seed-1 phantom
     0.94-0.96 for femora, tibiae and humeri either way, the forearm bones 0.91-0.92
     against the rule's 0.85-0.89). On the six phantoms of docs/benchmarks.md the density
-    rule's bones met #5's Dice target (the oracle's minus 0.06) 99 times of 186 refined,
+    rule's bones met #5's Dice target (the oracle's minus 0.06) 114 times of 186 refined,
     71 as the personal map has them; what the refinement loses is a prior that is
-    very good already (seed 1's thoracic vertebrae, put on the discs the stations
-    show: 0.90 -> 0.84).
+    very good already (seed 1's thoracic vertebrae: 0.90 -> 0.84, a pixel ring round
+    bodies whose cortex is thinner than a pixel).
 
     ``stations`` gets ``refined_labels`` per station and ``doc`` (``stations.json``) the
     ``refined_bones``; the time is ``timings["refined labels"]``. ``bonecap evaluate subject``

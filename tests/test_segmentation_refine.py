@@ -53,8 +53,8 @@ def test_a_plate_the_density_rule_finds_in_part_is_refined_from_a_prior_two_pixe
     seed = np.argwhere(bone)[-1].astype(float)
     rule = density.density_threshold_slice(img, seed, 1.0, body)
     prior = np.roll(bone, 2, axis=0)
-    ev, mus = refine.bone_evidence(img, body, 1.0)
-    got = refine.refine_section(prior, ev, mus)
+    ev = refine.bone_evidence(img, body, 1.0)
+    got = refine.refine_section(prior, ev)
     assert _dice(rule, bone) < 0.5
     assert _dice(got, bone) > 0.85
     assert _dice(prior, bone) < 0.7
@@ -75,12 +75,43 @@ def test_a_prior_over_muscle_keeps_only_its_interior():
     img = np.where(body, MUSCLE, 0.0) + rng.normal(0, 2.0, (n, n))
     img[(r >= 28) & body] = FAT          # a third of the body and more: the candidates are the fat
     prior = np.hypot(x - 40, y - 40) < 9
-    ev, mus = refine.bone_evidence(img, body, 1.0)
-    got = refine.refine_section(prior, ev, mus, core_px=2)
+    ev = refine.bone_evidence(img, body, 1.0)
+    got = refine.refine_section(prior, ev, core_px=2)
     from scipy import ndimage
     core = ndimage.binary_erosion(prior, np.ones((3, 3), bool), iterations=2)
     assert np.array_equal(got, core)
-    assert not refine.refine_section(prior, ev, mus, core_px=0).any()
+    assert not refine.refine_section(prior, ev, core_px=0).any()
+
+
+def test_only_the_bone_s_own_marrow_rim_is_taken_not_the_rim_of_fat_beside_it():
+    """A bone (bright marrow in 2 px of cortex) with a 1-px band of muscle between its cortex and a pad of fat:
+    the band is on the fat's rim (a partial-volume edge like a marrow's) but borders no marrow of the bone, so
+    a prior that is right stays right; the band pixels next to its marrow-filled end, where the cortex is thin,
+    are its own rim. Every marrow's rim as evidence put the band into the bone."""
+    ss, n = 4, 64
+    N = n * ss
+    y, x = (np.mgrid[0:N, 0:N] + 0.5) / ss
+    r = np.hypot(x - 32, y - 32)
+    fine = np.where(r < 30, MUSCLE, 0.0)
+    bone_fine = r < 10
+    fine[bone_fine] = 0.0                          # cortex 2 px thick
+    fine[r < 8] = MARROW
+    fine[(r >= 11) & (r < 16) & (x > 32)] = FAT    # the fat pad beside it, one pixel of muscle between
+    fine[(r >= 22) & (r < 30)] = FAT               # subcutaneous fat: the top third of the body is fat and marrow
+    img = fine.reshape(n, ss, n, ss).mean(axis=(1, 3))
+    bone = bone_fine.reshape(n, ss, n, ss).mean(axis=(1, 3)) >= 0.5
+    body = (r < 30).reshape(n, ss, n, ss).mean(axis=(1, 3)) >= 0.5
+    img = img + np.random.default_rng(4).normal(0, 2.0, img.shape)
+    ev = refine.bone_evidence(img, body, 1.0)
+    from scipy import ndimage
+    eight = np.ones((3, 3), bool)
+    # the bone's outer pixels on the fat's side that look like neither marrow nor cortex, all on the fat's rim
+    band = ndimage.binary_dilation(bone, eight) & ~bone & ~ev.marrow & ~ev.cortex & (x[::ss, ::ss] > 34)
+    assert band.sum() >= 5
+    assert not (band & ~ndimage.binary_dilation(ev.marrow & ~bone, eight)).any()
+    got = refine.refine_section(bone, ev)
+    assert not (got & band).any()
+    assert _dice(got, bone) > 0.95        # what it adds is the fat's partial-volume pixels (marrow-bright)
 
 
 def test_refine_labels_keeps_the_long_bones_and_the_other_priors():
@@ -115,8 +146,13 @@ def test_refine_input_checks():
         refine.bone_evidence(img, body, 1.0, dark_fraction=1.5)
     with pytest.raises(ValueError, match="shape"):
         refine.bone_evidence(img, body[:-1], 1.0)
+    ev = refine.bone_evidence(img, body, 1.0)
     with pytest.raises(ValueError, match="core_px"):
-        refine.refine_section(bone, bone, bone, core_px=-1)
+        refine.refine_section(bone, ev, core_px=-1)
+    with pytest.raises(ValueError, match="BoneEvidence"):
+        refine.refine_section(bone, (bone, bone, bone, bone))
+    with pytest.raises(ValueError, match="evidence.marrow"):
+        refine.refine_section(bone, refine.BoneEvidence(bone[:-1], *ev[1:]))
     with pytest.raises(ValueError, match="Volume"):
         refine.refine_labels(img, bone, {"hip_r": 1})
     with pytest.raises(ValueError, match="prior must have the volume's shape"):
