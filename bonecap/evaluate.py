@@ -314,6 +314,7 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
     report = {}
     if (subject_dir / "report.json").is_file():
         report = json.loads((subject_dir / "report.json").read_text())
+
     def surfaces(bone: str) -> dict[str, float]:
         truth_mesh = read_mesh(truth_dir / "meshes" / f"{bone}.ply")
         row: dict[str, float] = {}

@@ -80,7 +80,7 @@ class BoneEvidence(NamedTuple):
 def bone_evidence(image: np.ndarray, body_mask: np.ndarray, pixel_mm: float, *, muscle: float | None = None,
                   sigma_px: float = 0.7, fraction: float = 1 / 3, min_neighbours: int = 16,
                   dark_fraction: float = 0.5, muscle_band: float = 0.2, skin_band_mm: float = 3.0
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  ) -> BoneEvidence:
     """Where one axial slice shows bone tissue, and where it shows muscle.
 
     Parameters
