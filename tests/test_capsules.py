@@ -234,6 +234,25 @@ def test_capsules_to_markers_moves_out_along_the_skin_normal():
     assert np.allclose(out["M"], 109.0 * d, atol=0.1)
 
 
+def test_a_capsule_on_a_finger_moves_out_along_the_finger_s_own_normal():
+    """Four fingers side by side (9 mm radius, 20 mm apart, one skin); a capsule on the back of the
+    outer finger: the marker lies 3 mm further out along that finger's own normal, not tilted by the
+    neighbouring finger's side (a 20 mm ball took it in: 0.9 mm off)."""
+    import trimesh
+
+    from bonecap.build_mri import capsules_to_markers
+    from bonecap.model import Mesh
+
+    fingers = [trimesh.creation.cylinder(radius=9.0, height=80.0, sections=96,
+                                         transform=trimesh.transformations.translation_matrix([20.0 * i, 0, 0]))
+               for i in range(4)]
+    hand = trimesh.util.concatenate(fingers).subdivide_to_size(2.0)     # vertices all along the fingers
+    skin = Mesh(hand.vertices, hand.faces, "lps")
+    n = np.array([0.0, 1.0, 0.0])        # the back of the outer finger (x = 0; its neighbour at x = 20)
+    out = capsules_to_markers({"M": 13.0 * n}, skin, capsule_radius_mm=4.0, marker_radius_mm=7.0)
+    assert np.linalg.norm(out["M"] - 16.0 * n) <= 0.2, out["M"]
+
+
 def test_name_capsules_settles_close_pairs_before_reaching_far():
     """A marker placed 35 mm from its capsule gets it in the wide second pass, after its neighbour (10 mm
     from its own capsule, 30 mm from the far marker's) was settled in the first."""
