@@ -22,8 +22,9 @@
 7. **Markers**: each marker on the personal skin over its landmark; an
    MRI-visible capsule found near it (centre one marker-minus-capsule radius
    out along the skin normal) replaces the guess; a hand the scan did not
-   measure is turned and sized about the wrist onto its capsules ("hands
-   from markers", :func:`pose_from_capsules`); with a static trial the
+   measure is turned about the wrist into its skin (:func:`pose_inside_skin`)
+   and sized onto its capsules ("hands from markers",
+   :func:`pose_from_capsules`); with a static trial the
    skeleton is posed to it (a shank without capsules keeps the MRI's knee
    rotation, the foot its roll from the shank) and the markers without a
    capsule are bound at their measured positions. A capsule marker keeps its
@@ -1630,7 +1631,7 @@ def _place_and_bind(subject, mset, vols, bodies, static_trial, static_path, func
     report["capsules_matched"] = sorted(capsule_names)
     if capsule_names and subject.skin is not None:
         capsule_names = capsules_to_markers(capsule_names, subject.skin)
-        # the hands the scan did not measure: turned and sized onto their capsules, then their
+        # the hands the scan did not measure: sized onto their capsules, then their
         # markers placed again and every capsule named again (a finger capsule that lay too far
         # from its marker, or was taken by another's, on the template's hand is found now)
         sk, posed = pose_from_capsules(sk, mset, capsule_names)
@@ -1760,6 +1761,12 @@ CAPSULE_POSED_ROOTS = ("carpals_r", "carpals_l")
 CAPSULE_POSE_MAX_DEG = 30.0
 CAPSULE_POSE_SCALE = (0.8, 1.25)
 CAPSULE_POSE_MAX_RMS_MM = 6.0
+#: Whether :func:`pose_from_capsules` applies the turn it fits, or only the size. The placed markers'
+#: pattern is the template's (landmark plus the set's soft-tissue offset); a subject's own pattern, a few
+#: millimetres different over a hand's ~70 mm of markers, turned the fit 1.8-2.9 deg (three capsule
+#: phantoms), and the hands' frames at the MRI pose went from 0.7-1.9 deg off (turned into the skin,
+#: :func:`pose_inside_skin`) to 1.4-3.2 deg: every trial carries that turn through the capsules' binding.
+CAPSULE_POSE_TURN = False
 
 
 #: Segments the scan images only as skin (no bone rule resolves a hand at whole-body resolution): turned
@@ -1929,9 +1936,9 @@ def _scale_about(skeleton: Skeleton, bones: list[str], centre: np.ndarray, s: fl
 def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.ndarray],
                        roots: tuple[str, ...] = CAPSULE_POSED_ROOTS, *, max_deg: float = CAPSULE_POSE_MAX_DEG,
                        scale_limits: tuple[float, float] = CAPSULE_POSE_SCALE,
-                       max_rms_mm: float = CAPSULE_POSE_MAX_RMS_MM, iterations: int = 3
-                       ) -> tuple[Skeleton, dict[str, dict[str, float]]]:
-    """Segments the scan did not measure (the hands), turned and sized onto the capsules found on them.
+                       max_rms_mm: float = CAPSULE_POSE_MAX_RMS_MM, iterations: int = 3,
+                       turn: bool = CAPSULE_POSE_TURN) -> tuple[Skeleton, dict[str, dict[str, float]]]:
+    """Segments the scan did not measure (the hands), sized (and turned) onto the capsules found on them.
 
     The personal skeleton carries a hand from its neighbours' warps at the
     template's wrist angle and size (the mission's "hands from markers"): on
@@ -1945,7 +1952,9 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
     offset, :func:`bonecap.markers.place_markers`) onto the capsule-measured
     ones (Kabsch about a fixed centre [1]_, then the least-squares factor).
     The offsets do not scale with the bone, so the fit is repeated on the
-    re-placed markers (``iterations``).
+    re-placed markers (``iterations``). By default only the fit's size factor
+    is applied (``turn``, :data:`CAPSULE_POSE_TURN`): the turn is measured and
+    checked, but the hand's orientation stays the skin's.
 
     Parameters
     ----------
@@ -1963,16 +1972,20 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
         capsules after it at most ``max_rms_mm`` and smaller than before.
     iterations : int
         Fit, apply, place again: rounds (>= 1).
+    turn : bool
+        Apply the fitted turn too (else the size factor only).
 
     Returns
     -------
     skeleton : Skeleton
         A new skeleton (the input is not changed) with the fitted segments
-        scaled about the joint (meshes, landmarks and joint centres follow) and
-        turned; the other bones are the input's.
+        scaled about the joint (meshes, landmarks and joint centres follow) and,
+        with ``turn``, turned; the other bones are the input's.
     report : dict of str -> dict
-        Per root considered: ``turn_deg``, ``scale``, ``rms_before_mm``,
-        ``rms_after_mm``, ``markers`` (how many fitted) and ``applied`` (1.0 or
+        Per root considered: ``turn_deg`` (the fitted turn, applied or not), ``scale``,
+        ``rms_before_mm``, ``rms_fit_mm`` (after the fitted similarity, what
+        the limits check), ``rms_after_mm`` (after what was applied), ``markers``
+        (how many fitted) and ``applied`` (1.0 or
         0.0); ``dropped``, the marker left out, where the fit with all of them
         failed and one without one of them (of four or more) passed: a capsule
         named for the wrong marker.
@@ -2018,7 +2031,7 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
             rms0 = float(np.sqrt(np.mean(np.sum((A - B) ** 2, axis=1))))
             if np.linalg.svd(A, compute_uv=False)[1] < 1e-3 * np.linalg.norm(A):
                 return None                   # in line with the joint: the turn about that line is free
-            fitted, R_tot, s_tot = skeleton, np.eye(3), 1.0
+            fitted, R_tot, s_tot, R_open = skeleton, np.eye(3), 1.0, np.eye(3)
             for _ in range(int(iterations)):
                 M = _kabsch(A, B, scale=True, centred=False)[:3, :3]          # s R
                 s = float(np.cbrt(np.linalg.det(M)))
@@ -2026,15 +2039,20 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
                 if not (np.isfinite(s) and s > 0):
                     break
                 fitted = _scale_about(fitted, bones, centre, s)
-                _rotate_about(fitted, bones, centre, R)
-                R_tot, s_tot = R @ R_tot, s * s_tot
+                s_tot *= s
+                if turn:
+                    _rotate_about(fitted, bones, centre, R)
+                    R_tot = R @ R_tot
+                else:
+                    R_open = R        # the turn still between the sized markers and the capsules
                 A = vectors(fitted)
             rms1 = float(np.sqrt(np.mean(np.sum((A - B) ** 2, axis=1))))
-            turn = float(np.degrees(Rotation.from_matrix(R_tot).magnitude()))
-            ok = (turn <= max_deg and scale_limits[0] <= s_tot <= scale_limits[1] and rms1 <= max_rms_mm
-                  and rms1 < rms0)
-            return fitted, {"turn_deg": turn, "scale": s_tot, "rms_before_mm": rms0, "rms_after_mm": rms1,
-                            "markers": float(len(use)), "applied": float(ok)}
+            rms_fit = rms1 if turn else float(np.sqrt(np.mean(np.sum((A @ R_open.T - B) ** 2, axis=1))))
+            deg = float(np.degrees(Rotation.from_matrix(R_tot if turn else R_open).magnitude()))
+            ok = (deg <= max_deg and scale_limits[0] <= s_tot <= scale_limits[1] and rms_fit <= max_rms_mm
+                  and rms_fit < rms0)
+            return fitted, {"turn_deg": deg, "scale": s_tot, "rms_before_mm": rms0, "rms_fit_mm": rms_fit,
+                            "rms_after_mm": rms1, "markers": float(len(use)), "applied": float(ok)}
 
         res = fit(names)
         if res is None:
@@ -2047,7 +2065,7 @@ def pose_from_capsules(skeleton: Skeleton, marker_set, markers: dict[str, np.nda
             trials = [(n, fit([m for m in names if m != n])) for n in names]
             trials = [(n, r) for n, r in trials if r is not None and r[1]["applied"]]
             if trials:
-                dropped, res = min(trials, key=lambda t: t[1][1]["rms_after_mm"])
+                dropped, res = min(trials, key=lambda t: t[1][1]["rms_fit_mm"])
         fitted, row = res
         if row["applied"]:
             skeleton = fitted

@@ -271,7 +271,7 @@ def test_name_capsules_settles_close_pairs_before_reaching_far():
 
 def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
     """A hand turned 9 deg about the wrist and 8 % larger than the skeleton's: its capsule-measured markers
-    bring the skeleton's hand to it (the soft-tissue offsets do not scale: the repeated fit takes them in);
+    bring the skeleton's hand to it with ``turn`` (by default they size it only) (the soft-tissue offsets do not scale: the repeated fit takes them in);
     a fit beyond the limits, or a foot with its heel and toe only where the roots do not ask for it, stays."""
     from scipy.spatial.transform import Rotation
 
@@ -289,7 +289,7 @@ def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
     truth = _scale_about(sk, hand, wrist, 1.08)
     _rotate_about(truth, hand, wrist, R.as_matrix())
     measured = place_markers(mset, truth, names)
-    fitted, report = pose_from_capsules(sk, mset, measured)
+    fitted, report = pose_from_capsules(sk, mset, measured, turn=True)
     r = report["carpals_r"]
     assert r["applied"] == 1.0 and r["rms_before_mm"] > 15.0 and r["rms_after_mm"] < 0.3
     assert abs(r["scale"] - 1.08) < 0.01 and abs(r["turn_deg"] - 9.0) < 0.3
@@ -303,15 +303,25 @@ def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
     # a capsule named for the wrong marker (one finger marker given another's capsule) is left out
     swapped = dict(measured)
     swapped[names[-1]] = measured[names[-1]] + np.array([0.0, 25.0, -10.0])
-    fitted2, report2 = pose_from_capsules(sk, mset, swapped)
+    fitted2, report2 = pose_from_capsules(sk, mset, swapped, turn=True)
     assert report2["carpals_r"]["dropped"] == names[-1] and report2["carpals_r"]["rms_after_mm"] < 0.3
     assert np.allclose(fitted2.bones["carpals_r"].bone_to_world, fitted.bones["carpals_r"].bone_to_world, atol=1e-3)
     # a turn beyond max_deg is measured but not applied
     far = _scale_about(sk, hand, wrist, 1.0)
     _rotate_about(far, hand, wrist, Rotation.from_rotvec([0.0, 0.0, np.radians(40.0)]).as_matrix())
-    kept, rep = pose_from_capsules(sk, mset, place_markers(mset, far, names))
+    kept, rep = pose_from_capsules(sk, mset, place_markers(mset, far, names), turn=True)
     assert rep["carpals_r"]["applied"] == 0.0 and rep["carpals_r"]["turn_deg"] > 35.0
     assert np.allclose(kept.bones["carpals_r"].bone_to_world, sk.bones["carpals_r"].bone_to_world)
+    # by default only the size is applied: the turn is measured (and checked), the frames keep their
+    # orientation, and each bone's origin moves as the 8 % about the wrist takes it
+    sized, rep = pose_from_capsules(sk, mset, measured)
+    r = rep["carpals_r"]
+    assert r["applied"] == 1.0 and abs(r["scale"] - 1.08) < 0.01 and abs(r["turn_deg"] - 9.0) < 0.3
+    assert r["rms_fit_mm"] < 0.3 < r["rms_after_mm"] < r["rms_before_mm"]
+    for b in hand:
+        T, T0 = sized.bones[b].bone_to_world, sk.bones[b].bone_to_world
+        assert np.allclose(T[:3, :3], T0[:3, :3])
+        assert np.allclose(T[:3, 3], wrist + 1.08 * (T0[:3, 3] - wrist), atol=0.01 * np.linalg.norm(T0[:3, 3] - wrist))
     # one marker: nothing to fit
     assert pose_from_capsules(sk, mset, {names[0]: measured[names[0]]})[1] == {}
     with pytest.raises(ValueError, match="scale_limits"):
