@@ -1114,6 +1114,75 @@ def test_personal_label_ids_keep_the_given_ones_and_number_on_above_those_in_use
         personal_label_meshes(sk, {"a": 70000})
 
 
+def _block_scene(offset_mm: float):
+    """A 'vertebral body' (a 16 x 12 mm block: 1 mm of dark cortex round bright marrow) in muscle, in a
+    body ringed by fat, imaged in 6 axial slices (1 mm pixels, 5 mm thick), and a skeleton whose ``l3`` is
+    that block placed ``offset_mm`` to +x of it, a joint centre at its top and a rib of its own level."""
+    import trimesh
+
+    from bonecap.model import Bone, Mesh, Skeleton, Volume
+
+    n, K = 64, 6
+    x, y = np.mgrid[0:n, 0:n] + 0.0
+    r = np.hypot(x - 32, y - 32)
+    img = np.where(r < 30, 100.0, 0.0)
+    img[(r >= 26) & (r < 30)] = 250.0                              # subcutaneous fat
+    box = (np.abs(x - 32) <= 8) & (np.abs(y - 32) <= 6)          # 17 x 13 px, centred at (32, 32)
+    img[box] = 0.0                                                 # cortex
+    img[(np.abs(x - 32) <= 7) & (np.abs(y - 32) <= 5)] = 230.0     # marrow
+    data = np.repeat(img[:, :, None], K, axis=2) + np.random.default_rng(0).normal(0, 2.0, (n, n, K))
+    A = np.diag([1.0, 1.0, 5.0, 1.0])
+    vol = Volume(data, A)
+    body = np.repeat((r < 30)[:, :, None], K, axis=2)
+    m = trimesh.creation.box(extents=(17.0, 13.0, 40.0))
+    mesh = Mesh(np.asarray(m.vertices), np.asarray(m.faces), "lps")
+    T = np.eye(4)
+    T[:3, 3] = [32.0 + offset_mm, 32.0, 12.5]
+    sk = Skeleton({"l3": Bone("l3", None, mesh, T, joint_centres={"l2_l3": np.array([0.0, 0.0, 20.0])}),
+                   "rib3_r": Bone("rib3_r", "l3", None, np.eye(4)), "sternum": Bone("sternum", "l3", None, np.eye(4))},
+                  world="lps")
+    labels = np.zeros((n, n, K), np.int32)
+    return sk, vol, body, labels
+
+
+@pytest.mark.parametrize("offset_mm", [0.0, 2.0])
+def test_a_density_bone_placed_off_its_image_is_shifted_back_in_plane(offset_mm):
+    """density_bone_shifts: a block placed 2 mm off its image moves back towards it, in the slice plane
+    only; one placed right stays (< 0.5 mm); the shift applied keeps its joint centres where they were."""
+    from bonecap.build_mri import density_bone_shifts, shift_bones_keeping_joints
+
+    sk, vol, body, labels = _block_scene(offset_mm)
+    shifts = density_bone_shifts(sk, {"l3": 1}, [((labels, vol.affine), vol)], [body])
+    d = shifts["l3"]
+    assert d[2] == 0.0
+    if offset_mm == 0.0:
+        assert np.linalg.norm(d) < 0.5
+    else:
+        assert -2.5 < d[0] < -0.7 and abs(d[1]) < 0.5
+        joint = sk.bones["l3"].landmark_in_world("l2_l3")
+        origin = sk.bones["l3"].bone_to_world[:3, 3].copy()
+        shift_bones_keeping_joints(sk, shifts)
+        assert np.allclose(sk.bones["l3"].bone_to_world[:3, 3], origin + d)
+        assert np.allclose(sk.bones["l3"].landmark_in_world("l2_l3"), joint)
+    # a bone seen in too few voxels is not moved
+    assert density_bone_shifts(sk, {"l3": 1}, [((labels, vol.affine), vol)], [body], min_voxels=10 ** 6) == {}
+
+
+def test_the_ribs_and_the_sternum_follow_their_vertebrae():
+    """thorax_follows: rib<k> takes t<k>'s shift, the sternum the mean of t1-t7's that have one."""
+    from bonecap.build_mri import thorax_follows
+    from bonecap.model import Bone, Skeleton
+
+    names = ["t1", "t2", "t9", "rib1_r", "rib1_l", "rib2_r", "rib9_l", "rib5_r", "sternum"]
+    sk = Skeleton({n: Bone(n, None if n == "t1" else "t1", None, np.eye(4)) for n in names}, world="lps")
+    shifts = {"t1": np.array([1.0, 0.0, 0.0]), "t2": np.array([0.0, 2.0, 0.0]), "t9": np.array([0.0, 0.0, 3.0])}
+    out = thorax_follows(sk, shifts)
+    assert set(out) == {"rib1_r", "rib1_l", "rib2_r", "rib9_l", "sternum"}
+    assert np.allclose(out["rib9_l"], [0, 0, 3]) and np.allclose(out["rib1_l"], [1, 0, 0])
+    assert np.allclose(out["sternum"], [0.5, 1.0, 0.0])
+    assert thorax_follows(sk, {}) == {}
+
+
 def test_no_mri_knees_and_ankles_are_held_where_the_lateral_markers_put_them(phantom, tmp_path, monkeypatch):
     """Without MRI the knee and ankle centres come from the lateral markers (Plug-in Gait's rule, the
     depth from the joint widths the phantom's trials carry as Nexus stores them): in the static they lie
