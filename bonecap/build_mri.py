@@ -1958,7 +1958,7 @@ def pose_inside_skin(skeleton: Skeleton, skin: Mesh, roots: tuple[str, ...] = SK
     weak pull, ``prior``, towards no turn decides what the skin leaves free).
     The skin's signed distance is sampled on a ``voxel_mm`` grid around the
     segment (:func:`bonecap.phantom.render.voxelise_labels`, then Euclidean
-    distance transforms). Capsules, where found, refine the result
+    distance transforms). Capsules, where found, size the result
     (:func:`pose_from_capsules`).
 
     Parameters
