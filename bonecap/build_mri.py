@@ -2881,6 +2881,93 @@ def _radius_icp(pts: np.ndarray, target: Mesh, ulna_move: np.ndarray, ulna: Bone
     return rigid_icp(pts, surface, init=best[0])
 
 
+#: :func:`fit_skull_to_skin` turns the skull's lateral axis onto the head's plane of symmetry when the
+#: plane is found within this angle (deg) of where the vault's fit put that axis ...
+SKULL_SYMMETRY_MAX_DEG = 10.0
+#: ... and the head's skin mirrored across it lies within this RMS (mm) of itself (a head turned in the
+#: scanner's coil, or cut by the field of view, is not symmetric: the vault's fit is kept).
+SKULL_SYMMETRY_MAX_RMS_MM = 6.0
+
+
+def head_symmetry_plane(points: np.ndarray, normal: np.ndarray, offset: float, *, iterations: int = 60,
+                        trim: float = 0.9) -> tuple[np.ndarray, float, float]:
+    """The plane of bilateral symmetry of a point set (a head's skin), by mirror registration.
+
+    The points are mirrored across the current plane and registered rigidly
+    onto themselves (nearest neighbours, the ``trim`` closest kept, Kabsch
+    [2]_); the registration composed with the mirror is an improper rigid map
+    whose eigenvector of eigenvalue -1 is the better plane's normal, its fixed
+    points the plane [1]_. Repeated from ``(normal, offset)`` until it settles.
+
+    Parameters
+    ----------
+    points : ndarray (N, 3)
+        The surface's points (mm), N >= 10.
+    normal : ndarray (3,)
+        Start: the plane's normal (need not be unit).
+    offset : float
+        Start: the plane is ``{x : x . n = offset}`` (mm, ``n`` the unit normal).
+    iterations : int
+        At most this many rounds.
+    trim : float
+        Fraction of the mirrored points (closest to the surface) that take part, in (0, 1].
+
+    Returns
+    -------
+    normal : ndarray (3,)
+        Unit normal, on the side of the start's.
+    offset : float
+        mm.
+    rms_mm : float
+        RMS distance of the kept mirrored points from the surface at the end.
+
+    Raises
+    ------
+    ValueError
+        Too few points, a zero normal or a trim outside (0, 1].
+
+    References
+    ----------
+    .. [1] Prima S, Ourselin S, Ayache N (2002). Computation of the mid-sagittal plane in 3-D brain
+       images. IEEE Trans Med Imaging 21(2):122-138.
+    .. [2] Kabsch W (1976). Acta Cryst A32:922-923.
+    """
+    from scipy.spatial import cKDTree
+
+    from bonecap.skeleton.warp import _kabsch
+
+    P = np.asarray(points, float)
+    n = np.asarray(normal, float).reshape(3)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 10:
+        raise ValueError(f"head_symmetry_plane needs at least 10 points (N, 3), got shape {P.shape}")
+    if not np.linalg.norm(n) > 0 or not 0 < trim <= 1:
+        raise ValueError(f"head_symmetry_plane: a non-zero normal and trim in (0, 1] expected, got {normal!r}, {trim!r}")
+    n = n / np.linalg.norm(n)
+    d = float(offset)
+    tree = cKDTree(P)
+    rms = np.inf
+    for _ in range(int(iterations)):
+        H = np.eye(3) - 2.0 * np.outer(n, n)
+        h = 2.0 * d * n
+        mirrored = P @ H.T + h
+        dist, j = tree.query(mirrored)
+        keep = dist <= np.quantile(dist, trim)
+        rms = float(np.sqrt(np.mean(dist[keep] ** 2)))
+        T = _kabsch(mirrored[keep], P[j[keep]])
+        Q, q = T[:3, :3] @ H, T[:3, :3] @ h + T[:3, 3]
+        w, V = np.linalg.eig(Q)
+        n_new = np.real(V[:, int(np.argmin(np.abs(w + 1.0)))])
+        n_new = n_new / np.linalg.norm(n_new)
+        if n_new @ n < 0:
+            n_new = -n_new
+        d_new = float(q @ n_new) / 2.0        # a mirror x -> H x + 2 d n moves the origin by 2 d n
+        settled = float(n_new @ n) > np.cos(np.radians(1e-4)) and abs(d_new - d) < 1e-3
+        n, d = n_new, d_new
+        if settled:
+            break
+    return n, d, rms
+
+
 def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
                       max_residual_mm: float = 12.0) -> tuple[np.ndarray, dict[str, Any] | None]:
     """The skull's placement on the head's skin: what MRI bone contours miss.
@@ -2892,6 +2979,18 @@ def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
     affine ICP. The face and the neck are left out (their soft tissue is
     thick and varied): only template vertices above the orbits and ear
     canals (the upper 60 % of the skull's height) take part.
+
+    The vault is nearly round, so its fit says where the skull is better than
+    how it is turned: on six phantom builds its lateral axis lay 1.2-3.5 deg
+    from the truth's. The whole head's skin is symmetric about the skull's
+    mid-sagittal plane whatever its soft tissue (0.3-0.4 deg there): the
+    skull is then turned about its origin so that its lateral axis (ISB ``Z``)
+    is the normal of the skin's plane of symmetry
+    (:func:`head_symmetry_plane`, started from the fitted axis), and moved
+    across so that its origin lies on it; its turn about the lateral axis
+    stays the vault's. Not applied when the plane is not found within
+    :data:`SKULL_SYMMETRY_MAX_DEG` of the fitted axis or the mirrored skin lies
+    further than :data:`SKULL_SYMMETRY_MAX_RMS_MM` from itself.
 
     Returns
     -------
@@ -2943,7 +3042,48 @@ def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
         A = np.eye(4)
     else:
         out["used"] = True
+        A, out["symmetry"] = _skull_onto_symmetry(A, posed.bones["skull"].bone_to_world, tm.vertices, sv)
+        out["transform"] = A.tolist()
     return A, out
+
+
+def _skull_onto_symmetry(A: np.ndarray, T_placed: np.ndarray, skull_world: np.ndarray, skin_vertices: np.ndarray,
+                         margin_mm: float = 30.0) -> tuple[np.ndarray, dict[str, Any]]:
+    """``A`` (placed skull -> fitted, world) corrected so that the skull's lateral axis (its frame's ``Z``,
+    ISB) is the head's skin's symmetry normal and its origin on that plane (:func:`fit_skull_to_skin`).
+    The head's skin: the skin's vertices over the fitted skull's extent (``margin_mm`` around it in plane,
+    from its lowest point up)."""
+    fitted = skull_world @ A[:3, :3].T + A[:3, 3]
+    lo, hi = fitted.min(axis=0), fitted.max(axis=0)
+    sel = ((skin_vertices[:, 2] >= lo[2]) & np.all(skin_vertices[:, :2] >= lo[:2] - margin_mm, axis=1)
+           & np.all(skin_vertices[:, :2] <= hi[:2] + margin_mm, axis=1))
+    rep: dict[str, Any] = {"skin_points": int(sel.sum()), "used": False}
+    if sel.sum() < 100:
+        rep["reason"] = "too little of the head's skin"
+        return A, rep
+    R = A[:3, :3] @ T_placed[:3, :3]
+    origin = A[:3, :3] @ T_placed[:3, 3] + A[:3, 3]
+    lateral = R[:, 2]
+    n, d, rms = head_symmetry_plane(skin_vertices[sel], lateral, float(lateral @ origin))
+    deg = float(np.degrees(np.arccos(np.clip(n @ lateral, -1.0, 1.0))))
+    rep.update({"plane_rms_mm": round(rms, 2), "turn_deg": round(deg, 2)})
+    if deg > SKULL_SYMMETRY_MAX_DEG or rms > SKULL_SYMMETRY_MAX_RMS_MM:
+        rep["reason"] = "no clear plane of symmetry: the vault's fit kept"
+        return A, rep
+    # the smallest turn taking the lateral axis onto the normal, about the skull's origin
+    axis = np.cross(lateral, n)
+    s = float(np.linalg.norm(axis))
+    turn = np.eye(3)
+    if s > 1e-12:
+        from scipy.spatial.transform import Rotation
+
+        turn = Rotation.from_rotvec(axis / s * np.arcsin(min(1.0, s))).as_matrix()
+    shift = (d - float(n @ origin)) * n
+    M = np.eye(4)
+    M[:3, :3] = turn
+    M[:3, 3] = origin - turn @ origin + shift
+    rep.update({"shift_mm": round(float(np.linalg.norm(shift)), 2), "used": True})
+    return M @ A, rep
 
 
 def place_skull(personal: Skeleton, posed: Skeleton, A: np.ndarray) -> None:

@@ -1283,3 +1283,86 @@ def test_joint_consistent_keeps_a_turned_shoulder_girdle():
     wobbly = poses.copy()
     wobbly[1:, :3, 3] += [[1.0, -2.0, 0.5], [0.0, 1.5, -1.0], [2.0, 0.0, 1.0]]    # gaps at the joints
     np.testing.assert_allclose(joint_consistent(sk, wobbly), poses, atol=1e-9)
+
+
+def _mirror_symmetric_head(rng, n_true, d_true):
+    """Points of a head-like surface symmetric about the plane x . n_true = d_true: an ellipsoid with a
+    nose and a chin off its mid-plane's front and a bump on one ear's side mirrored on the other."""
+    u = rng.normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    P = u * np.array([75.0, 95.0, 110.0])                       # lateral x, anterior y, superior z (local)
+    P = P[P[:, 0] >= 0]                                           # one half ...
+    bump = np.array([60.0, 10.0, 0.0])
+    P += 8.0 * np.exp(-np.sum((P - bump) ** 2, axis=1) / 400.0)[:, None] * np.array([1.0, 0.0, 0.0])
+    nose = (np.abs(P[:, 0]) < 15) & (P[:, 1] > 70) & (np.abs(P[:, 2] + 10) < 25)
+    P[nose, 1] += 12.0 * (1 - np.abs(P[nose, 0]) / 15)
+    P = np.concatenate([P, P * np.array([-1.0, 1.0, 1.0])])      # ... and its mirror image
+    # the local mid-plane x = 0 turned onto n_true and moved to d_true
+    from scipy.spatial.transform import Rotation
+
+    ex = np.array([1.0, 0.0, 0.0])
+    axis = np.cross(ex, n_true)
+    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arccos(ex @ n_true)).as_matrix()
+    return P @ R.T + d_true * n_true
+
+
+def test_the_head_s_plane_of_symmetry_is_found_from_a_turned_start():
+    """head_symmetry_plane: a symmetric head turned 6 deg and moved 4 mm across, started from the unturned
+    plane: the plane comes back within 0.2 deg and 0.3 mm; bad input is refused."""
+    from bonecap.build_mri import head_symmetry_plane
+
+    rng = np.random.default_rng(3)
+    n_true = np.array([np.cos(np.radians(6.0)), np.sin(np.radians(6.0)), 0.0])
+    P = _mirror_symmetric_head(rng, n_true, 4.0)
+    P = P + rng.normal(0, 0.3, P.shape)
+    n, d, rms = head_symmetry_plane(P, np.array([1.0, 0.0, 0.0]), 0.0)
+    assert np.degrees(np.arccos(min(1.0, n @ n_true))) < 0.2
+    assert abs(d - 4.0) < 0.3
+    assert rms < 2.0
+    # the start's side is kept
+    n2, d2, _ = head_symmetry_plane(P, np.array([-1.0, 0.0, 0.0]), 0.0)
+    assert np.allclose(n2, -n, atol=1e-3) and abs(d2 + d) < 0.1
+    with pytest.raises(ValueError, match="at least 10 points"):
+        head_symmetry_plane(P[:5], n_true, 0.0)
+    with pytest.raises(ValueError, match="non-zero normal"):
+        head_symmetry_plane(P, np.zeros(3), 0.0)
+
+
+def test_a_skull_turned_off_its_head_is_turned_back_onto_the_head_s_symmetry():
+    """_skull_onto_symmetry: the template's skull, its scalp (6 mm out along its normals) the head's skin,
+    the skull placed 4 deg turned about the vertical and 3 mm across: its lateral axis comes back within
+    1 deg and its origin onto the mid-plane within 1 mm; its turn about the lateral axis is not touched.
+    A skin that is not symmetric (one side cut away) leaves the fit as it was."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_mri import _skull_onto_symmetry
+    from bonecap.skeleton.template import load_template
+
+    sk = load_template("default")
+    T_true = np.eye(4)
+    T_true[:3, 3] = [0.0, 0.0, 1600.0]
+    b = sk.bones["skull"]
+    tm = trimesh.Trimesh(b.mesh.vertices, b.mesh.faces, process=False)
+    local_skin = tm.vertices + 6.0 * tm.vertex_normals
+    # world: the template's frame (x anterior, y superior, z lateral) laid into an LPS-like world where z is up
+    W = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # local -> world rotation
+    T_true[:3, :3] = W
+    skin = local_skin @ W.T + T_true[:3, 3]
+    T_off = T_true.copy()
+    yaw = Rotation.from_rotvec(np.radians(4.0) * W[:, 1]).as_matrix()     # about the skull's superior axis
+    T_off[:3, :3] = yaw @ W
+    T_off[:3, 3] += 3.0 * W[:, 2]
+    skull_world = b.mesh.vertices @ T_off[:3, :3].T + T_off[:3, 3]
+    A, rep = _skull_onto_symmetry(np.eye(4), T_off, skull_world, skin)
+    assert rep["used"] and 3.0 < rep["turn_deg"] < 5.0
+    R = A[:3, :3] @ T_off[:3, :3]
+    o = A[:3, :3] @ T_off[:3, 3] + A[:3, 3]
+    assert np.degrees(np.arccos(min(1.0, R[:, 2] @ W[:, 2]))) < 1.0
+    assert abs((o - T_true[:3, 3]) @ W[:, 2]) < 1.0
+    # the turn about the lateral axis (the vault's pitch) is left as the fit had it
+    assert abs(np.degrees(np.arctan2(R[:, 0] @ W[:, 1], R[:, 0] @ W[:, 0]))) < 1.0
+    # half a head: no plane of symmetry is trusted
+    half = skin[(skin - T_true[:3, 3]) @ W[:, 2] > -10.0]
+    A2, rep2 = _skull_onto_symmetry(np.eye(4), T_off, skull_world, half)
+    assert not rep2["used"] and np.allclose(A2, np.eye(4))
