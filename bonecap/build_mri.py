@@ -2982,9 +2982,10 @@ def fit_skull_to_skin(posed: Skeleton, skin: Mesh, scalp_mm: float = 6.0,
 
     The vault is nearly round, so its fit says where the skull is better than
     how it is turned: on six phantom builds its lateral axis lay 1.2-3.5 deg
-    from the truth's. The whole head's skin is symmetric about the skull's
-    mid-sagittal plane whatever its soft tissue (0.3-0.4 deg there): the
-    skull is then turned about its origin so that its lateral axis (ISB ``Z``)
+    from the truth's. The whole head's skin is close to symmetric about the
+    skull's mid-sagittal plane whatever its soft tissue (faces are, to a few
+    millimetres; on the phantoms the skin's plane lay 0.3-0.4 deg from the
+    skull's): the skull is then turned about its origin so that its lateral axis (ISB ``Z``)
     is the normal of the skin's plane of symmetry
     (:func:`head_symmetry_plane`, started from the fitted axis), and moved
     across so that its origin lies on it; its turn about the lateral axis
