@@ -683,6 +683,14 @@ def test_the_shoulder_girdle_follows_the_arms_elevation(phantom):
     R = np.linalg.solve(T[:, th, :3, :3], T[:, hu, :3, :3])
     R0 = np.linalg.solve(T0[:, th, :3, :3], T0[:, hu, :3, :3])
     assert np.abs(R - R0).max() < 1e-9
+    # the scapula turns on its clavicle about the normal of its own plane (ISB's X at the reference)
+    cl = names.index("clavicle_r")
+    rel = np.linalg.solve(T[:, cl, :3, :3], T[:, sc, :3, :3]) @ np.linalg.inv(
+        np.linalg.solve(T[rest, cl, :3, :3], T[rest, sc, :3, :3]))
+    axis_in_clavicle = Rotation.from_matrix(rel[top]).as_rotvec()
+    xs = np.linalg.solve(T[rest, cl, :3, :3], T[rest, sc, :3, 0])
+    assert np.degrees(np.linalg.norm(axis_in_clavicle)) > 20.0
+    assert abs(axis_in_clavicle @ xs) / np.linalg.norm(axis_in_clavicle) > np.cos(np.radians(1.0))
     # the joints still meet: the shoulder centre rides on the scapula
     gh_s = _apply(T[:, sc], skel.bones["scapula_r"].joint_centres["shoulder"])
     gh_h = _apply(T[:, hu], skel.bones["humerus_r"].joint_centres["shoulder"])

@@ -85,7 +85,8 @@ the **shoulder girdle** follows the arm (scapulohumeral rhythm,
 :data:`GIRDLE_RHYTHM`): for a humerus raised ``E`` degrees from the thorax's
 downward axis the clavicle rises by 0.12 E and retracts by 0.12 E at the
 sternoclavicular joint and the scapula turns upward by 0.2 E at the
-acromioclavicular joint (the scapula ~0.3 E on the thorax: Inman's 2:1), the
+acromioclavicular joint, about the normal of its own plane (ISB's ``X``; the
+scapula ~0.3 E on the thorax: Inman's 2:1), the
 humerus keeping the orientation its shoulder angles give it relative to the
 thorax while the girdle carries its centre (at 150 deg the acromion moves
 ~70 mm, the shoulder centre ~80 mm; an OpenSim model without clavicles has
@@ -457,8 +458,9 @@ class GirdleSpec:
         Unit axes in the sternum's frame: turning about them by a positive angle lifts / draws back
         the clavicle's lateral end.
     upward_axis : ndarray (3,)
-        Unit axis in the clavicle's frame: a positive turn about it turns the scapula upward
-        (glenoid up, inferior angle lateral).
+        Unit axis in the clavicle's frame, the scapula's ISB ``X`` at the reference pose (the normal
+        of the scapular plane): a positive turn about it turns the scapula upward (glenoid up,
+        inferior angle lateral).
     shoulder_in_humerus : ndarray (3,)
         The shoulder joint centre in the humerus's frame (mm).
     """
@@ -499,11 +501,17 @@ def _girdle_spec(skeleton: Skeleton, side: str, anat: np.ndarray) -> GirdleSpec 
     sign = 1.0 if side == "r" else -1.0
     R_st, R_cl = st.bone_to_world[:3, :3], bc.bone_to_world[:3, :3]
     sc_world = _apply(bc.bone_to_world, sc)
+    # The scapula turns upward about the normal of its own plane, ISB's X_s (Wu et al. 2005: the line
+    # perpendicular to the plane of the inferior angle, acromial angle and trigonum spinae; upward rotation
+    # is the turn about it in the scapula's Y-X-Z sequence, as Ludewig et al. 2009 report it). The blade lies
+    # ~35 deg round the thorax, so the body's anterior axis (session 31's) is not that axis. Pointed forward.
+    xs = bs.bone_to_world[:3, 0]
+    xs = xs if xs @ anat[:, 0] >= 0 else -xs
     # lateral is +right for the right side: a turn about -anterior lifts it, about -superior draws it back
     return GirdleSpec(side=int(sign), sternum=bc.parent, clavicle=clavicle, scapula=scapula, humerus=humerus,
                       sc_centre=_apply(np.linalg.inv(st.bone_to_world), sc_world), ac_centre=np.asarray(ac, float),
                       elevation_axis=R_st.T @ (-sign * anat[:, 0]), retraction_axis=R_st.T @ (-sign * anat[:, 1]),
-                      upward_axis=R_cl.T @ (-sign * anat[:, 0]), shoulder_in_humerus=np.asarray(gh, float))
+                      upward_axis=R_cl.T @ (-sign * xs), shoulder_in_humerus=np.asarray(gh, float))
 
 
 def girdle_angles(table: "JointTable", angles: Mapping[str, np.ndarray], side: str) -> dict[str, np.ndarray]:
