@@ -270,9 +270,10 @@ def test_name_capsules_settles_close_pairs_before_reaching_far():
 
 
 def test_pose_from_capsules_recovers_a_turned_and_scaled_hand():
-    """A hand turned 9 deg about the wrist and 8 % larger than the skeleton's: its capsule-measured markers
-    bring the skeleton's hand to it with ``turn`` (by default they size it only) (the soft-tissue offsets do not scale: the repeated fit takes them in);
-    a fit beyond the limits, or a foot with its heel and toe only where the roots do not ask for it, stays."""
+    """A hand turned 9 deg about the wrist and 8 % larger than the skeleton's: with ``turn`` its
+    capsule-measured markers bring the skeleton's hand to it (the soft-tissue offsets do not scale: the
+    repeated fit takes them in); by default they size it only. A fit beyond the limits, or a foot with its
+    heel and toe only where the roots do not ask for it, stays."""
     from scipy.spatial.transform import Rotation
 
     from bonecap.build_mri import _rotate_about, _scale_about, _subtree, pose_from_capsules

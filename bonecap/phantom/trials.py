@@ -504,7 +504,8 @@ def _girdle_spec(skeleton: Skeleton, side: str, anat: np.ndarray) -> GirdleSpec 
     # The scapula turns upward about the normal of its own plane, ISB's X_s (Wu et al. 2005: the line
     # perpendicular to the plane of the inferior angle, acromial angle and trigonum spinae; upward rotation
     # is the turn about it in the scapula's Y-X-Z sequence, as Ludewig et al. 2009 report it). The blade lies
-    # ~35 deg round the thorax, so the body's anterior axis (session 31's) is not that axis. Pointed forward.
+    # round the thorax, so the body's anterior axis (session 31's) is not that axis (24 deg from it on the
+    # embedded skeleton). Pointed forward.
     xs = bs.bone_to_world[:3, 0]
     xs = xs if xs @ anat[:, 0] >= 0 else -xs
     # lateral is +right for the right side: a turn about -anterior lifts it, about -superior draws it back
