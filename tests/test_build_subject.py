@@ -1115,9 +1115,10 @@ def test_personal_label_ids_keep_the_given_ones_and_number_on_above_those_in_use
 
 
 def _block_scene(offset_mm: float):
-    """A 'vertebral body' (a 16 x 12 mm block: 1 mm of dark cortex round bright marrow) in muscle, in a
+    """A 'vertebral body' (a 17 x 13 mm block: 1 mm of dark cortex round bright marrow) in muscle, in a
     body ringed by fat, imaged in 6 axial slices (1 mm pixels, 5 mm thick), and a skeleton whose ``l3`` is
-    that block placed ``offset_mm`` to +x of it, a joint centre at its top and a rib of its own level."""
+    that block placed ``offset_mm`` to +x of it with a joint centre at its top (two bones without meshes
+    beside it, which no shift concerns)."""
     import trimesh
 
     from bonecap.model import Bone, Mesh, Skeleton, Volume
