@@ -537,10 +537,20 @@ FOLLOWED_TIPS = ("fibula",)
 #: femoral head in the acetabulum, the humeral head on the glenoid.
 FOLLOWED_HEADS = ("femur", "humerus")
 
+#: The long bones whose distal end is a process without marrow, the radial and ulnar styloids: the cortical
+#: rule, which starts from marrow, ends them where the marrow does (on three phantoms every radius and ulna
+#: extraction ended 6-11 mm short of its styloid, once the search no longer ran on into the carpals), so
+#: that end is always a cut for the warp (:func:`unseen_ends`), and the template's marrow is stretched to
+#: reach the extraction there (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``cover_marrow``).
+MARROWLESS_ENDS = ("radius", "ulna")
+
 #: The long bones whose extraction, end to end, is a lower bound on their length: the warp stretches a
 #: template that falls short of it along the axis (:func:`bonecap.skeleton.warp.cover_extent`). The
-#: fibula's ends lie free of other long bones' lines; a radius's or ulna's search runs on into the carpals
-#: (9-28 mm past the bone on phantoms), a femoral head's into the pelvis, so theirs are no bound.
+#: fibula's ends lie free of other long bones' lines; a femoral head's search runs on into the pelvis, so
+#: its extent is no bound. A radius's or ulna's could run on into the carpals (9-28 mm past the bone on
+#: phantoms, before :func:`bonecap.segmentation.bones.defer_to_shaft_stacks` and the seed margin's gap
+#: limit); their extraction ends short of their styloids instead, and it is their marrow that covers it
+#: (:data:`MARROWLESS_ENDS`).
 COVERED_EXTENTS = ("fibula",)
 
 
@@ -859,7 +869,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     from bonecap.markers import check_marker_set, load_marker_set
     from bonecap.meshing import mesh_from_slices, meshes_from_labels
     from bonecap.progress import stage_bar
-    from bonecap.segmentation.bones import segment_bones
+    from bonecap.segmentation.bones import defer_to_shaft_stacks, segment_bones
     from bonecap.segmentation.skin import segment_body
     from bonecap.skeleton.isb import malleolar_frames, malleolar_turns
     from bonecap.skeleton.template import load_template
@@ -934,6 +944,7 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     bar.update()
 
     posed, align_report = None, {}
+    overlap_dropped: dict[str, int] = {}
     if labels is not None:
         # 3-4. the user's own segmentation replaces seeds and contours
         bar.set_postfix_str("labels")
@@ -973,6 +984,10 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
                                                           **seg_settings), list(zip(vols, bodies)))
         except ValueError as exc:     # an unknown option in the seeds file
             raise InputError(str(exc), seeds) from None
+        # where stations overlap, a long bone's end is judged by the one holding its shaft (a station holding
+        # only the end kept the carpals past the forearm's bones)
+        overlap_dropped = defer_to_shaft_stacks([lab for lab, _ in segmented], [m for _, m in segmented], vols,
+                                                seed_map, seg_settings.get("rules"))
         for v, (lab, station_ids) in zip(vols, segmented):
             # one id space across stations
             remap = np.zeros(max(station_ids.values(), default=0) + 1, dtype=np.int32)
@@ -1011,13 +1026,16 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     if targets:
         # a user's label map says nothing of where it was looked for: no cut
         cut = unseen_ends(targets, seed_map, vols, margin_mm=seg_settings.get("margin_mm", 20.0),
-                          tips=FOLLOWED_TIPS if seg_settings.get("follow_tips") else ()) if labels is None else {}
+                          tips=FOLLOWED_TIPS if seg_settings.get("follow_tips") else (),
+                          # the template's lines run proximal -> distal; a user's may not
+                          processes=MARROWLESS_ENDS if seeds is None else ()) if labels is None else {}
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
                                               max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed,
                                               unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None,
-                                              cover=[n for n in targets if n[:-2] in COVERED_EXTENTS])
+                                              cover=[n for n in targets if n[:-2] in COVERED_EXTENTS],
+                                              cover_marrow=[n for n in cut if n[:-2] in MARROWLESS_ENDS])
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly
@@ -1103,7 +1121,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
     report: dict[str, Any] = {
         "mode": "mri", "stations": reg_report, "intensity_scales": np.asarray(scales).tolist(),
         "template_placement": align_report, "skull_from_skin": skull_report,
-        "extracted_bones": sorted(extracted), "not_meshed": not_meshed, "warp": warp_report,
+        "extracted_bones": sorted(extracted), "not_meshed": not_meshed,
+        "overlap_sections_dropped": overlap_dropped, "warp": warp_report,
         "density_shifts_mm": {n: np.round(d, 2).tolist() for n, d in shifts.items()},
         "skin_posed_segments": skin_posed, **marker_report,
         "timings_s": timings, "seconds": round(sum(timings.values()), 2),
@@ -1485,7 +1504,8 @@ def personal_labels(meshes: list[tuple[Mesh, int]], affine: np.ndarray, shape, v
 
 
 def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: list[Volume], *,
-                margin_mm: float = 20.0, tips: tuple[str, ...] = ()) -> dict[str, list[tuple[np.ndarray, float]]]:
+                margin_mm: float = 20.0, tips: tuple[str, ...] = (),
+                processes: tuple[str, ...] = ()) -> dict[str, list[tuple[np.ndarray, float]]]:
     """Where each long bone's extraction ends because the search did, not the bone: half-spaces for the warp.
 
     The cortical rule looks for a long bone on the slices its seed polyline
@@ -1505,7 +1525,10 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
     search's last slice, was tracked there to its point
     (:func:`bonecap.segmentation.bones._extend_tip`): that end is its own.
     Other bones followed past their search stop at their joint, past which
-    they may go on (the medial malleolus beside the talus): a cut.
+    they may go on (the medial malleolus beside the talus): a cut. A bone
+    whose distal end is a process without marrow (``processes``: the radial
+    and ulnar styloids) ends where its marrow does, short of the process,
+    wherever the search stopped: its distal end is always a cut.
 
     Parameters
     ----------
@@ -1519,6 +1542,9 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
         How far past a polyline's ends the search went.
     tips : tuple of str
         Bone names without their side suffix (:data:`FOLLOWED_TIPS`).
+    processes : tuple of str
+        Bone names without their side suffix (:data:`MARROWLESS_ENDS`); the
+        distal end is the seed polyline's last point's.
 
     Returns
     -------
@@ -1549,9 +1575,13 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
         # labelled on the last slice searched: its section reaches half a pitch past that slice's centre;
         # a tip tracked a slice or more past it ended there (past the images' end nothing is labelled)
         tip = name[:-2] in tips
-        if ez.min() < lo + 0.5 * dz + 1.0 and not (tip and fov_lo < lo and ez.min() < lo - 0.5 * dz - 1.0):
+        distal_low = name[:-2] in processes and z[-1] < z[0]
+        distal_high = name[:-2] in processes and z[-1] > z[0]
+        if distal_low or (ez.min() < lo + 0.5 * dz + 1.0
+                          and not (tip and fov_lo < lo and ez.min() < lo - 0.5 * dz - 1.0)):
             cuts.append((-u, -(float(ez.min()) + dz)))
-        if ez.max() > hi - 0.5 * dz - 1.0 and not (tip and hi < fov_hi and ez.max() > hi + 0.5 * dz + 1.0):
+        if distal_high or (ez.max() > hi - 0.5 * dz - 1.0
+                           and not (tip and hi < fov_hi and ez.max() > hi + 0.5 * dz + 1.0)):
             cuts.append((u.copy(), float(ez.max()) - dz))
         if cuts:
             out[name] = cuts
@@ -2495,7 +2525,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         The personal skeleton at the MRI pose (LPS), with ulna, radius and humerus meshes.
     side : {"r", "l"}
     max_icp_mm : float
-        A bone whose registration leaves a larger mean residual is not in that stack: error.
+        A bone whose registration leaves a larger median residual is not in that stack: error (the
+        median: where the stack's segmentation missed part of the bone, the mean grows with what was
+        missed, however well the rest fits).
     markers : mapping of str -> MarkerBinding, optional
         The subject's markers (bone, position in the bone frame).
     registered : Pending, optional
@@ -2585,6 +2617,13 @@ def start_forearm_registration(dirs: list[str | os.PathLike], personal: Skeleton
                       list(zip(dirs, entries)), workers=len(dirs) if default_workers() > 1 else 1)
 
 
+#: The share of matches the ulna's ICP in a forearm stack keeps each way (the warp's keep 0.9). Half a
+#: turn pronated, the radius crosses the ulna, whose seed then takes radius sections and loses its own
+#: (phantom seed 2 at 172 deg: a tenth of the ulna's target was radius, a quarter of the ulna missing): at
+#: 0.9 the fit settled 3-13 mm (mean over the bone) from its fit onto the true ulna, at 0.8 within 0.5-1.1.
+STACK_ULNA_TRIM = 0.8
+
+
 def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float, read=None):
     """One forearm stack: ulna and radius segmented and the personal bones registered onto them.
 
@@ -2653,16 +2692,17 @@ def _register_stack(d, personal: Skeleton, side: str, max_icp_mm: float, read=No
         target = mesh_from_slices([(mask, v.affine)], target_faces=8000)
         pts = bone.mesh.transformed(bone.bone_to_world).vertices
         if n == ulna_n:
-            T, res = rigid_icp(pts, target)
+            T, res = rigid_icp(pts, target, trim=STACK_ULNA_TRIM)
         else:
             ulna_move = Ts[ulna_n] @ np.linalg.inv(U.bone_to_world)
             T, res = _radius_icp(pts, target, ulna_move, U,
                                  extra_starts=[turn @ ulna_move] if turn is not None else ())
         Ts[n] = T @ bone.bone_to_world
         report[f"{n}_icp_mm"] = float(np.mean(res))
-        if np.mean(res) > max_icp_mm:
+        report[f"{n}_icp_median_mm"] = float(np.median(res))
+        if np.median(res) > max_icp_mm:
             raise DataError(f"the personal {n} does not fit the {n.split('_')[0]} segmented in this stack "
-                            f"(ICP residual {np.mean(res):.1f} mm > {max_icp_mm:g} mm)", d)
+                            f"(median ICP residual {np.median(res):.1f} mm > {max_icp_mm:g} mm)", d)
     # the capsules were found with their own body mask (find_capsules): the skin mask holds them
     return Ts, report, centres
 

@@ -835,6 +835,17 @@ def test_unseen_ends_mark_where_the_search_cut_a_long_bone():
     past = unseen_ends({"tibia_r": rod(72.5, 280.0), "fibula_r": rod(72.5, 280.0)}, seeds, vols, tips=("fibula",))
     assert list(past) == ["tibia_r"]
     assert list(unseen_ends({"fibula_r": rod(78.5, 280.0)}, seeds, vols, tips=("fibula",))) == ["fibula_r"]
+    # a bone whose distal end is a process without marrow (the radial styloid) is cut there even where its
+    # extraction ends two slices inside the search; its proximal end, 40 mm inside, is not
+    seeds["radius_r"] = seeds["tibia_r"]
+    assert unseen_ends({"radius_r": rod(92.0, 280.0)}, seeds, vols) == {}
+    cuts = unseen_ends({"radius_r": rod(92.0, 280.0)}, seeds, vols, processes=("radius",))
+    assert [np.round(n).tolist() for n, _ in cuts["radius_r"]] == [[0.0, 0.0, -1.0]]
+    assert cuts["radius_r"][0][1] == pytest.approx(-(92.0 + 5.0))
+    # a line drawn distal end up (an arm raised in the scanner): the cut is at the top
+    seeds["radius_r"] = seeds["tibia_r"][::-1]
+    cuts = unseen_ends({"radius_r": rod(120.0, 280.0)}, seeds, vols, processes=("radius",))
+    assert [np.round(n).tolist() for n, _ in cuts["radius_r"]] == [[0.0, 0.0, 1.0]]
 
 
 def test_no_mri_trunk_and_arms_against_the_truth(phantom, tmp_path):

@@ -382,6 +382,74 @@ def test_the_continuity_walk_trims_ends_but_does_not_take_half_a_bone():
     np.testing.assert_array_equal(out, lab)
 
 
+@pytest.mark.parametrize("gap, beyond_crossed, kept", [(2, False, False), (1, False, True), (2, True, True)])
+def test_past_a_gap_the_seed_margin_finds_the_next_bone_not_this_one(gap, beyond_crossed, kept):
+    """A radius-like tube on slices 0-13 (5 mm apart), then ``gap`` empty slices, then two slices of
+    another bone on its axis, as large (the carpals past the distal radius): the seed margin (20 mm)
+    reaches them and they continue the tube in place and size. Past more than MARGIN_GAP_MM of empty
+    slices they are dropped; one empty slice is the bone going on past its template's end; and a slice
+    the polyline crosses stays past any gap (the femoral neck and head past a stretch of grey shaft)."""
+    from bonecap.segmentation.bones import MARGIN_GAP_MM, segment_bones
+
+    dz, K = 5.0, 20
+    assert 5.0 < MARGIN_GAP_MM < 10.0          # one empty 5 mm slice is no gap, two are
+    beyond = range(14 + gap, 16 + gap)
+    vol, body = _tube_stack(120, K, dz, [(60, 60, 7, 4, range(0, 14)), (60, 60, 7, 4, beyond)], seed=4)
+    end = (beyond[-1] if beyond_crossed else 13) * dz
+    seeds = {"radius_r": np.array([[60.0, 60.0, 0.0], [60.0, 60.0, end]])}
+    labels, ids = segment_bones(vol, seeds, body_mask=body, progress=False, margin_mm=20.0)
+    area = (labels == ids["radius_r"]).sum(axis=(0, 1))
+    assert np.all(np.abs(area[:14] - np.pi * 49) < 40)
+    assert (area[list(beyond)] > 0).all() == kept and (area[list(beyond)] == 0).all() != kept
+
+
+def test_where_stations_overlap_the_one_holding_the_shaft_judges_a_long_bone_s_end():
+    """Two overlapping stations: A (z 0-95 mm) holds most of the radius's line (z 10-70: 13 of its
+    slices), B (z 60-155) three. B's sections where A labels the radius too stay; those A images
+    without the radius (the carpals past its end) are dropped; one only B images stays; A is left as
+    it is, and so are a bone crossing no station and a density bone."""
+    from bonecap.segmentation.bones import defer_to_shaft_stacks
+
+    dz = 5.0
+    A = Volume(np.zeros((40, 40, 20), np.float32), np.diag([1.0, 1.0, dz, 1.0]))
+    B = Volume(np.zeros((40, 40, 20), np.float32), np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0],
+                                                             [0, 0, dz, 60.0], [0, 0, 0, 1.0]]))
+    seeds = {"radius_r": np.array([[20.0, 20.0, 10.0], [20.0, 20.0, 70.0]]),
+             "ulna_r": np.array([[20.0, 20.0, 200.0], [20.0, 20.0, 260.0]]),   # in no station
+             "hip_r": np.array([[20.0, 20.0, 30.0]])}
+    ids_a = {"radius_r": 1, "ulna_r": 2, "hip_r": 3}
+    ids_b = {"radius_r": 4, "ulna_r": 5, "hip_r": 6}             # each stack its own ids
+    la, lb = np.zeros(A.shape, np.int32), np.zeros(B.shape, np.int32)
+    la[15:25, 15:25, 2:15] = 1         # z 10-70
+    lb[15:25, 15:25, 0:3] = 4          # z 60-70: A labels the radius there too
+    lb[15:25, 15:25, 3:6] = 4          # z 75-85: A images it, without the radius
+    lb[15:25, 15:25, 12] = 4           # z 120: B alone images it
+    lb[5:10, 5:10, 0:6] = 5
+    lb[30:35, 30:35, 3:6] = 6
+    before_a, before_b = la.copy(), lb.copy()
+    dropped = defer_to_shaft_stacks([la, lb], [ids_a, ids_b], [A, B], seeds)
+    assert dropped == {"radius_r": 3}
+    np.testing.assert_array_equal(la, before_a)
+    radius = (lb == 4).sum(axis=(0, 1))
+    assert list(np.flatnonzero(radius)) == [0, 1, 2, 12]
+    np.testing.assert_array_equal(lb == 5, before_b == 5)
+    np.testing.assert_array_equal(lb == 6, before_b == 6)
+    # B's slices staggered against A's (z 63, 68, 73, 78): the section at z 73 lies nearest A's z 75, past
+    # the radius, but A's slice at z 70 images its slab too: kept; the one at z 78 is past both
+    B2 = Volume(B.data, B.affine.copy())
+    B2.affine[2, 3] = 63.0
+    lb2 = np.zeros(B2.shape, np.int32)
+    lb2[15:25, 15:25, 0:4] = 4
+    assert defer_to_shaft_stacks([la, lb2], [ids_a, ids_b], [A, B2], seeds) == {"radius_r": 1}
+    assert list(np.flatnonzero((lb2 == 4).sum(axis=(0, 1)))) == [0, 1, 2]
+    with pytest.raises(ValueError, match="as many"):
+        defer_to_shaft_stacks([la], [ids_a, ids_b], [A, B], seeds)
+    with pytest.raises(ValueError, match="does not match"):
+        defer_to_shaft_stacks([la[:, :, :5], lb], [ids_a, ids_b], [A, B], seeds)
+    with pytest.raises(ValueError, match="min_share"):
+        defer_to_shaft_stacks([la, lb], [ids_a, ids_b], [A, B], seeds, min_share=0.0)
+
+
 def test_a_canal_too_narrow_to_show_bright_is_found_inside_its_cortex():
     """A fibula-sized bone (4-4.5 mm radius, 1.8-2 mm of cortex) at 1.8 mm pixels: partial volume
     leaves its canal at most ~1.2-1.4 x muscle, so bright-marrow candidates alone find nothing (seed 2's

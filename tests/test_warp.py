@@ -776,6 +776,59 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
     assert err[True] < 0.6 * err[False] and err[True] < 15.0, err
 
 
+def test_cover_extent_covers_only_the_ends_toward_the_given_directions():
+    """A target longer than the template at both ends: ``directions`` limits the stretch to the ends lying
+    toward them (a cut end), a direction across the bone to neither."""
+    from bonecap.skeleton.warp import cover_extent
+
+    V = np.asarray(_tapered_rod(300.0).vertices)
+    both = V * [1, 1, 1.1] - [0, 0, 15.0]                    # 15 mm past each end
+    T, rep = cover_extent(np.eye(4), V, both)
+    assert rep["lo_mm"] == pytest.approx(15.0, abs=0.05) and rep["hi_mm"] == pytest.approx(15.0, abs=0.05)
+    T, rep = cover_extent(np.eye(4), V, both, directions=[np.array([0.0, 0.1, -1.0])])
+    assert rep["lo_mm"] == pytest.approx(15.0, abs=0.05) and rep["hi_mm"] == 0.0
+    T, rep = cover_extent(np.eye(4), V, both, directions=[np.array([0.0, 0.0, 2.0])])
+    assert rep["lo_mm"] == 0.0 and rep["hi_mm"] == pytest.approx(15.0, abs=0.05)
+    T, rep = cover_extent(np.eye(4), V, both, directions=[np.array([1.0, 0.0, 0.0])])
+    assert rep is None and np.array_equal(T, np.eye(4))
+
+
+def test_a_bone_whose_extraction_ends_with_its_marrow_gets_its_tip_back():
+    """A radius-like rod whose marrow ends 14 mm short of its tip (the styloid holds none), the subject's
+    8 % longer, tops together. The cortical rule's extraction ends where the subject's marrow does, and
+    that end is a cut (unseen). Plain, the warp leaves the tip where the template's shorter bone put it;
+    with ``cover_marrow`` the template's marrow is stretched to the extraction's end, and the tip, 14 mm
+    past it in the template, lands within a few mm of the subject's."""
+    import pyvista as pv
+
+    L, s, gap = 260.0, 1.08, 14.0
+    rod = _tapered_rod(L, radius=7.0, taper=20.0)
+    V, F = np.asarray(rod.vertices), np.asarray(rod.faces)
+    inner = trimesh.creation.cylinder(radius=3.5, segment=[[0, 0, gap], [0, 0, L - 20.0]])
+    tV = V * [1.0, 1.0, s] - [0, 0, (s - 1.0) * L]          # the subject: its tip (s - 1) L = 20.8 mm lower
+    marrow_end = gap * s - (s - 1.0) * L
+    poly = pv.PolyData(tV, np.hstack([np.full((len(F), 1), 3), F]).ravel())
+    cut = poly.clip_closed_surface(normal=(0, 0, 1.0), origin=(0, 0, marrow_end)).triangulate()
+    cut = trimesh.Trimesh(np.asarray(cut.points), np.asarray(cut.faces).reshape(-1, 4)[:, 1:], process=True)
+    target = Mesh(np.asarray(cut.vertices), np.asarray(cut.faces), "lps")
+    sk = Skeleton({"radius": Bone("radius", None, Mesh(V, F, "radius"), np.eye(4), joint_centres={"top": [0, 0, L]},
+                                  landmarks={"styloid": [0.0, 0.0, 0.5]},
+                                  inner_mesh=Mesh(np.asarray(inner.vertices), np.asarray(inner.faces), "radius"))},
+                  world="model")
+    unseen = {"radius": [((0, 0, -1.0), -(marrow_end + 5.0))]}
+    tip_true = np.array([0.0, 0.0, 0.5 * s - (s - 1.0) * L])
+    err, reps = {}, {}
+    for cover in ((), ("radius",)):
+        personal, rep = warp_skeleton(sk, {"radius": target}, init=np.eye(4), start_from="placed", unseen=unseen,
+                                      cover_marrow=cover)
+        err[bool(cover)] = np.linalg.norm(personal.bones["radius"].landmark_in_world("styloid") - tip_true)
+        reps[bool(cover)] = rep
+    assert "covered" not in reps[False]["bones"]["radius"]
+    assert reps[True]["bones"]["radius"]["covered"]["marrow"]["lo_mm"] > 5.0
+    assert err[False] > 10.0, err
+    assert err[True] < 4.0, err
+
+
 def test_a_slender_bone_s_affine_is_a_rigid_motion_with_two_scales():
     """A fibula-like rod (a flattened section with a knob at its tip, so that its turn is held) turned,
     moved, 5 % longer and 8 % thicker: ``axial_icp`` from the rigid fit, untrimmed, recovers the map (its

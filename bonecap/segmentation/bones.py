@@ -40,7 +40,8 @@ from bonecap.progress import progress as _progress
 from bonecap.segmentation import cortical, density
 from bonecap.segmentation._checks import check_body_mask
 
-__all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones", "keep_continuous"]
+__all__ = ["LONG_BONES", "RULES", "default_rule", "slice_seeds", "segment_bones", "keep_continuous",
+           "defer_to_shaft_stacks"]
 
 #: Bones segmented by the cortical-edge rule (base names, without ``_r``/``_l``).
 LONG_BONES = ("femur", "tibia", "fibula", "humerus", "radius", "ulna")
@@ -50,6 +51,10 @@ RULES = ("cortical", "density")
 # femoral head but runs 30-40 mm medial of the shaft at the lesser trochanter,
 # so the femur's marrow is looked for farther from its seed.
 _SEARCH_RADIUS_MM = {"femur": 45.0, "humerus": 35.0}
+
+#: A long bone's section past its polyline's end (found by the seed margin) is kept only when the
+#: empty slices between it and the bone's last section span at most this, mm (:func:`_keep_continuous`).
+MARGIN_GAP_MM = 7.5
 
 
 def _base(bone: str) -> str:
@@ -732,7 +737,7 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
                     opts=opts, crossed=crossed)
     _split_joints(labels, ids, seeds, volume, long_bones, joint_zone_mm, track=track)
     if continuity:
-        _keep_continuous(labels, ids, crossed, pixel_mm)
+        _keep_continuous(labels, ids, crossed, pixel_mm, slice_mm=float(sp[2]))
     # a free tip after the walk: its narrowing sections are tracked from the last one the walk kept
     # (the search past the fibula's point took the talus's marrow with it, which the walk dropped)
     for n, step, _ in to_follow({n: v for n, v in (follow_mm or {}).items() if n in tips}):
@@ -1197,13 +1202,114 @@ def keep_continuous(labels: np.ndarray, ids: Mapping[str, int], volume: Volume, 
     long_bones = [n for n in seeds if n in ids and rules.get(n, default_rule(n)) == "cortical"]
     crossed = {n: [len(c) > 0 for c in slice_seeds(volume, seeds[n], 0.0)] for n in long_bones}
     pixel_mm = float(0.5 * (volume.spacing[0] + volume.spacing[1]))
+    # no gap limit here: a forearm stack's seeds come from a forearm posed by guess, and its sections
+    # are registered as a whole afterwards (the limit cost seed 2's 172 deg stack its ulna's fit)
     _keep_continuous(labels, ids, crossed, pixel_mm)
     return labels
 
 
+def defer_to_shaft_stacks(labels: list[np.ndarray], ids: list[Mapping[str, int]], volumes: list[Volume],
+                          seeds: Mapping[str, np.ndarray], rules: Mapping[str, str] | None = None, *,
+                          min_share: float = 0.5) -> dict[str, int]:
+    """Where two stacks overlap, a long bone's sections are the stack's that holds more of its shaft (in place).
+
+    :func:`segment_bones` judges a long bone's end by its sections' continuity
+    from the shaft (:func:`_keep_continuous`), and a stack that holds only the
+    end -- the polyline crosses a slice or two at its edge, or none and only
+    the seed margin reaches in -- has no shaft to walk from: it keeps whatever
+    its seeds found (past the distal radius and ulna, the carpals of the hand
+    lying beside the thigh, in the station below the forearm's). Overlapping
+    stations image those slices twice, and the one whose slices the polyline
+    crosses more often holds the shaft and has judged the end. So a section
+    is kept only where that stack labels the bone too: at least ``min_share``
+    of its voxels, mapped in-plane to the other stack's nearest voxels, carry
+    the bone there. Stacks are settled from the one crossed most, each judged by the
+    most crossed stack that images the section's centre; a section no more
+    crossed stack images is the only view and stays. The stacks' slices need
+    not line up: a voxel counts as labelled there when either of the judging
+    stack's two slices around it is.
+
+    Parameters
+    ----------
+    labels : list of ndarray (I, J, K) of int
+        Per stack, from :func:`segment_bones`; modified in place.
+    ids : list of dict str -> int
+        Per stack, its bone ids.
+    volumes : list of Volume
+        The stacks (their grids: ``affine`` voxel -> LPS mm, registered to one world).
+    seeds : dict of str -> ndarray (N, 3)
+        The seed polylines the stacks were segmented with (LPS mm).
+    rules : dict of str -> str, optional
+        As given to :func:`segment_bones`; only long (``"cortical"``) bones are
+        treated.
+    min_share : float
+        The share of a section's voxels the judging stack must label as the bone.
+
+    Returns
+    -------
+    dict of str -> int
+        Per bone, the number of sections dropped (bones with none left out).
+
+    Raises
+    ------
+    ValueError
+        The three lists differ in length, a label map is not its volume's shape,
+        or ``min_share`` is not within (0, 1].
+    """
+    if not len(labels) == len(ids) == len(volumes):
+        raise ValueError(f"labels, ids and volumes must be as many, got {len(labels)}, {len(ids)}, {len(volumes)}")
+    for lab, v in zip(labels, volumes):
+        if lab.shape != tuple(v.shape[:3]):
+            raise ValueError(f"a label map of shape {lab.shape} does not match its volume's {tuple(v.shape[:3])}")
+    if not 0 < min_share <= 1:
+        raise ValueError(f"min_share must be within (0, 1], got {min_share}")
+    rules = dict(rules or {})
+    names = {n for m in ids for n in m if n in seeds and rules.get(n, default_rule(n)) == "cortical"}
+    dropped: dict[str, int] = {}
+
+    def inside(v: Volume, idx: np.ndarray) -> np.ndarray:
+        return np.all((idx >= -0.5) & (idx <= np.asarray(v.shape[:3]) - 0.5), axis=-1)
+
+    for n in sorted(names):
+        crossings = [sum(len(c) > 0 for c in slice_seeds(v, seeds[n], 0.0)) for v in volumes]
+        order = sorted(range(len(volumes)), key=lambda s: -crossings[s])
+        for s in order:
+            lab, m, v = labels[s], ids[s], volumes[s]
+            judges = [t for t in order if crossings[t] > crossings[s] and n in ids[t]]
+            if n not in m or not judges:
+                continue
+            lid = m[n]
+            for k in np.flatnonzero((lab == lid).any(axis=(0, 1))):
+                sec = lab[:, :, k] == lid
+                ij = np.argwhere(sec)
+                xyz = v.index_to_world(np.column_stack([ij, np.full(len(ij), k)]).astype(float))
+                centre = xyz.mean(axis=0)
+                for t in judges:                      # the most crossed stack imaging the section judges it
+                    w = volumes[t]
+                    if not inside(w, w.world_to_index(centre)):
+                        continue
+                    idx = w.world_to_index(xyz)
+                    idx = idx[inside(w, idx)]
+                    hi = np.asarray(w.shape[:3]) - 1
+                    i, j = (np.clip(np.rint(idx[:, a]).astype(int), 0, hi[a]) for a in (0, 1))
+                    # the stacks' slices are staggered: the judge's two slices around the section both image
+                    # its slab (nearest alone, the last slice of a femoral condyle, 0.4 of a pitch off, took
+                    # the thinner end's section for it: 0.48 of the section)
+                    k0 = np.clip(np.floor(idx[:, 2] + 1e-6).astype(int), 0, hi[2])   # one slice when aligned
+                    k1 = np.clip(np.ceil(idx[:, 2] - 1e-6).astype(int), 0, hi[2])
+                    there = (labels[t][i, j, k0] == ids[t][n]) | (labels[t][i, j, k1] == ids[t][n])
+                    share = np.count_nonzero(there) / len(ij)
+                    if share < min_share:
+                        lab[:, :, k][sec] = 0
+                        dropped[n] = dropped.get(n, 0) + 1
+                    break
+    return dropped
+
+
 def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mapping[str, list[bool]],
-                      pixel_mm: float, *, grow: float = 2.5, min_overlap: float = 0.5,
-                      reach_mm: float = 3.0, max_loss: float = 0.5) -> None:
+                      pixel_mm: float, *, slice_mm: float | None = None, grow: float = 2.5,
+                      min_overlap: float = 0.5, reach_mm: float = 3.0, max_loss: float = 0.5,
+                      max_gap_mm: float = MARGIN_GAP_MM) -> None:
     """Keep a long bone's sections only where they continue it, from its shaft to its ends (in place).
 
     A long bone's sections follow each other from slice to slice; towards its
@@ -1226,7 +1332,15 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
     section, two 5 mm slices away; phantom seed 1: tibia Dice +0.02), but on
     seed 2 the proximal femoral shaft's marrow was grey for 30 mm, the seed
     took the ischium there, and the limit cut off the whole femoral neck and
-    head beyond (femur Dice 0.93 -> 0.82).
+    head beyond (femur Dice 0.93 -> 0.82). What a gap does end is the seed
+    margin: past a gap of more than ``max_gap_mm`` (empty slices between it
+    and the last section kept, ``slice_mm`` apart), a section on a slice the
+    polyline does not cross is dropped (the margin catches a bone a little
+    longer than its template, which goes on without a gap; across one it found
+    the next bone: the carpals 10 mm past the distal radius and ulna, where the
+    joint space and its partial volume left two slices without marrow). The
+    femoral neck and head past seed 2's grey shaft are crossed by the femur's
+    polyline (hip to knee centre) and stay.
     Re-growing a dropped section from the marrow lying on the previous one was
     tried: at the top of the femoral head, where partial volume leaves the
     marrow muscle-grey, that marrow is the acetabulum's. So was the longest
@@ -1269,6 +1383,9 @@ def _keep_continuous(labels: np.ndarray, ids: Mapping[str, int], crossed: Mappin
             prev, k_prev = labels[:, :, anchor] == lid, anchor
             for k in range(anchor + step, K if step > 0 else -1, step):
                 if area[k] == 0:
+                    continue
+                if slice_mm is not None and not cr[k] and (abs(k - k_prev) - 1) * slice_mm > max_gap_mm:
+                    drop.append(k)
                     continue
                 cur = labels[:, :, k] == lid
                 # the next section up: the link found for the shaft is the same test (downwards the roles of

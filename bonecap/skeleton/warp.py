@@ -709,7 +709,7 @@ def _default_widths(extent: float, spacing: float) -> list[float]:
 
 
 def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarray, *, tol_mm: float = 2.0,
-                 max_stretch: float = 1.12) -> tuple[np.ndarray, dict[str, Any] | None]:
+                 max_stretch: float = 1.12, directions=None) -> tuple[np.ndarray, dict[str, Any] | None]:
     """Stretch an elongated bone's affine along its long axis until it covers its target's extent.
 
     A long bone's shaft is a cylinder: along its own axis an ICP is held only
@@ -728,8 +728,8 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
     axis (anchored at the end that already covers) so that the template reaches
     each end of the target it fell short of by more than ``tol_mm``. Only for
     bones whose extraction does not run on into a neighbour (the caller
-    decides: build-subject gives the fibulae; a radius's or ulna's search runs
-    into the carpals, a femur's head into the pelvis).
+    decides: build-subject gives the fibulae, not a femur, whose head's search
+    runs into the pelvis); or, with ``directions``, for a bone's marrow.
 
     Parameters
     ----------
@@ -743,6 +743,13 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
         Shortfalls up to this are left to the RBF.
     max_stretch : float
         A larger stretch is not applied (the target holds something else).
+    directions : sequence of ndarray (3,), optional
+        Cover only the ends lying toward one of these directions (target world;
+        an end whose outward axis makes less than 60 deg with one). None: both.
+        With the template's marrow (its inner surface) as ``src_world``, a
+        bone whose extraction ends where its marrow does (the radius and ulna,
+        short of their styloids) has its marrow stretched to reach it at that
+        end (:func:`warp_skeleton`'s ``cover_marrow``).
 
     Returns
     -------
@@ -770,8 +777,13 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
         return T, None
     st = st[near]
     lo, hi = float(sb.min()), float(sb.max())
-    new_lo = float(st.min()) if lo - st.min() > tol_mm else lo
-    new_hi = float(st.max()) if st.max() - hi > tol_mm else hi
+    if directions is None:
+        lo_ok = hi_ok = True
+    else:
+        dots = [float(np.asarray(d, float) @ u) / max(float(np.linalg.norm(d)), 1e-12) for d in directions]
+        lo_ok, hi_ok = any(x < -0.5 for x in dots), any(x > 0.5 for x in dots)
+    new_lo = float(st.min()) if lo_ok and lo - st.min() > tol_mm else lo
+    new_hi = float(st.max()) if hi_ok and st.max() - hi > tol_mm else hi
     if new_lo == lo and new_hi == hi:
         return T, None
     a = (new_hi - new_lo) / (hi - lo)
@@ -800,7 +812,7 @@ def _long_axis(points: np.ndarray) -> np.ndarray | None:
 def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
               n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
               n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray,
-              cover: bool = False) -> dict[str, Any]:
+              cover: bool = False, marrow: np.ndarray | None = None) -> dict[str, Any]:
     """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
 
     An elongated bone gets a second rigid start, trimmed (:data:`TRIMMED_START`), whose affine
@@ -808,7 +820,9 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
 
     ``check_pts`` (template world) are where the Jacobian must stay positive: the bone's outer and
     inner surface vertices. ``cover``: stretch the affine along the bone's axis to its target's extent
-    (:func:`cover_extent`); the plain affine ICP stays the affine-only baseline (``T_affine_icp``)."""
+    (:func:`cover_extent`); the plain affine ICP stays the affine-only baseline (``T_affine_icp``).
+    ``marrow`` (template world, the bone's inner surface's vertices): stretch the affine so that the
+    marrow reaches the extraction's cut ends (``target.unseen``; :func:`cover_extent`'s ``directions``)."""
     sub = src_world[np.linspace(0, len(src_world) - 1, min(n_icp, len(src_world))).astype(int)]
     # The rigid stage keeps every pair (no trimming): a long bone placed off along its own axis -- a
     # template shorter or longer than the subject's -- is held there only by its ends, and the pairs at
@@ -840,6 +854,11 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     T_icp, covered = T_aff, None
     if cover:
         T_aff, covered = cover_extent(T_aff, src_world, target.mesh.vertices)
+    if marrow is not None and len(target.unseen):
+        # at a cut end the extraction is the marrow's last sections: the template's marrow must reach them
+        T_aff, covered_m = cover_extent(T_aff, marrow, target.mesh.vertices, directions=[n for n, _ in target.unseen])
+        if covered_m is not None:
+            covered = {**(covered or {}), "marrow": covered_m}
     base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
     extent = float(np.ptp(base.vertices, axis=0).max())
     spacing = float(np.sqrt(base.to_trimesh().area / max(n_features, 8)))
@@ -900,7 +919,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
                   rigid_bodies=None, fixed=None, unseen=None,
-                  refine_chain=None, cover=()) -> tuple[Skeleton, dict[str, Any]]:
+                  refine_chain=None, cover=(), cover_marrow=()) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -1004,6 +1023,12 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         affine is stretched along the axis to cover it before the RBF
         (:func:`cover_extent`; report: ``covered``). build-subject gives the
         fibulae.
+    cover_marrow : collection of str
+        Bones whose extraction ends where their marrow does at their cut ends
+        (``unseen``): the template's marrow (its inner surface) is stretched
+        along the axis to reach the extraction there (report: ``covered``'s
+        ``marrow``). build-subject gives the radii and ulnae, whose styloids
+        hold no marrow.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -1086,7 +1111,9 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], cuts.get(name, ())), start,
                          n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
-                         check, cover=name in cover)
+                         check, cover=name in cover,
+                         marrow=_apply(bone.bone_to_world, bone.inner_mesh.vertices)
+                         if name in cover_marrow and bone.inner_mesh is not None else None)
 
     if start_from == "placed":
         # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
