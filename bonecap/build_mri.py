@@ -537,12 +537,23 @@ FOLLOWED_TIPS = ("fibula",)
 #: femoral head in the acetabulum, the humeral head on the glenoid.
 FOLLOWED_HEADS = ("femur", "humerus")
 
-#: The long bones whose distal end is a process without marrow, the radial and ulnar styloids: the cortical
-#: rule, which starts from marrow, ends them where the marrow does (on three phantoms every radius and ulna
-#: extraction ended 6-11 mm short of its styloid, once the search no longer ran on into the carpals), so
-#: that end is always a cut for the warp (:func:`unseen_ends`), and the template's marrow is stretched to
-#: reach the extraction there (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``cover_marrow``).
-MARROWLESS_ENDS = ("radius", "ulna")
+#: How far (mm) a bone's rigid fit may move it from where the template was placed before its target is
+#: taken for another bone's (``warp_skeleton``'s ``max_shift_mm``; bones carried onto joints, twice that).
+#: The placement from the body's extent is that far off: the demo subject's (seed 0) femora sat 35-41 mm
+#: too high, their heads' top sections the only ones its femoral target had lost (a false section above the
+#: right head, dropped by the seed margin's gap limit), and at 40 mm the right femur's correct fit (40.7 mm)
+#: was refused, then its pelvis and spine carried from it (cervical vertebrae 20-40 mm off).
+PLACED_MAX_SHIFT_MM = 60.0
+
+#: The long bones whose distal end is a process without marrow, the ulnar styloid (the template's marrow
+#: ends 6 mm short of its tip): the cortical rule, which starts from marrow, ends the bone where the marrow
+#: does (on three phantoms every ulna extraction ended 6-10 mm short of its styloid, once the search no
+#: longer ran on into the carpals), so that end is always a cut for the warp (:func:`unseen_ends`), and the
+#: template's marrow is stretched to reach the extraction there
+#: (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``cover_marrow``). Not the radius: the template's marrow
+#: reaches within 2 mm of its styloid, so the cover never applies, and with the end cut the demo subject's
+#: radii had every RBF width fold and stayed 9-10 mm short (their tips within 1 mm without the cut).
+MARROWLESS_ENDS = ("ulna",)
 
 #: The long bones whose extraction, end to end, is a lower bound on their length: the warp stretches a
 #: template that falls short of it along the axis (:func:`bonecap.skeleton.warp.cover_extent`). The
@@ -1032,7 +1043,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
-                                              max_shift_mm=40.0 if placed_ok else np.inf, fixed=skull_fixed,
+                                              max_shift_mm=PLACED_MAX_SHIFT_MM if placed_ok else np.inf,
+                                              fixed=skull_fixed,
                                               unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None,
                                               cover=[n for n in targets if n[:-2] in COVERED_EXTENTS],
                                               cover_marrow=[n for n in cut if n[:-2] in MARROWLESS_ENDS])
@@ -1526,9 +1538,9 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
     (:func:`bonecap.segmentation.bones._extend_tip`): that end is its own.
     Other bones followed past their search stop at their joint, past which
     they may go on (the medial malleolus beside the talus): a cut. A bone
-    whose distal end is a process without marrow (``processes``: the radial
-    and ulnar styloids) ends where its marrow does, short of the process,
-    wherever the search stopped: its distal end is always a cut.
+    whose distal end is a process without marrow (``processes``: the ulnar
+    styloid) ends where its marrow does, short of the process, wherever the
+    search stopped: its distal end is always a cut.
 
     Parameters
     ----------

@@ -747,9 +747,9 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
         Cover only the ends lying toward one of these directions (target world;
         an end whose outward axis makes less than 60 deg with one). None: both.
         With the template's marrow (its inner surface) as ``src_world``, a
-        bone whose extraction ends where its marrow does (the radius and ulna,
-        short of their styloids) has its marrow stretched to reach it at that
-        end (:func:`warp_skeleton`'s ``cover_marrow``).
+        bone whose extraction ends where its marrow does (the ulna, short of
+        its styloid) has its marrow stretched to reach it at that end
+        (:func:`warp_skeleton`'s ``cover_marrow``).
 
     Returns
     -------
@@ -1027,8 +1027,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         Bones whose extraction ends where their marrow does at their cut ends
         (``unseen``): the template's marrow (its inner surface) is stretched
         along the axis to reach the extraction there (report: ``covered``'s
-        ``marrow``). build-subject gives the radii and ulnae, whose styloids
-        hold no marrow.
+        ``marrow``). build-subject gives the ulnae, whose styloids hold no
+        marrow.
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
