@@ -699,6 +699,17 @@ def _tapered_rod(length: float, radius: float = 6.0, taper: float = 30.0) -> tri
     return trimesh.creation.revolve(prof, sections=32)
 
 
+def _kept_above(V: np.ndarray, F: np.ndarray, z: float) -> Mesh:
+    """The closed surface (V, F) cut at height ``z``, its part above kept and capped (a search's cut end)."""
+    import pyvista as pv
+
+    poly = pv.PolyData(V, np.hstack([np.full((len(F), 1), 3), F]).ravel())
+    kept = poly.clip_closed_surface(normal=(0, 0, 1.0), origin=(0, 0, z)).triangulate()   # keeps z > cut
+    kept = trimesh.Trimesh(np.asarray(kept.points), np.asarray(kept.faces).reshape(-1, 4)[:, 1:], process=True)
+    assert kept.is_watertight and np.isclose(kept.vertices[:, 2].min(), z)
+    return Mesh(np.asarray(kept.vertices), np.asarray(kept.faces), "lps")
+
+
 def test_cover_extent_stretches_a_short_template_to_its_target():
     """cover_extent on analytic rods: a template 8 % short of its target at one end is stretched along its
     axis (anchored at the end that covers) to reach it, the section unchanged; a shortfall within the
@@ -742,8 +753,6 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
     Plain, nothing holds the affine's length at the cut end: it stays short, and the narrow RBF kernels
     of a thin bone do not reach the landmark. With ``cover`` the affine is first stretched to the
     extraction's end, which halves the landmark's error (what is left is the part the search never saw)."""
-    import pyvista as pv
-
     L = 380.0
     rod = _tapered_rod(L)
     V, F = np.asarray(rod.vertices), np.asarray(rod.faces)
@@ -753,11 +762,7 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
     lm_true = lm0 * [1, 1, s] - [0, 0, (s - 1.0) * L]
     tip_true_z = tV[:, 2].min()
     cut_z = tip_true_z + 14.0
-    poly = pv.PolyData(tV, np.hstack([np.full((len(F), 1), 3), F]).ravel())
-    short = poly.clip_closed_surface(normal=(0, 0, 1.0), origin=(0, 0, cut_z)).triangulate()  # keeps z > cut
-    short = trimesh.Trimesh(np.asarray(short.points), np.asarray(short.faces).reshape(-1, 4)[:, 1:], process=True)
-    assert short.is_watertight and np.isclose(short.vertices[:, 2].min(), cut_z)
-    target = Mesh(np.asarray(short.vertices), np.asarray(short.faces), "lps")
+    target = _kept_above(tV, F, cut_z)
     sk = Skeleton({"fibula": Bone("fibula", None, Mesh(V, F, "fibula"), np.eye(4),
                                   joint_centres={"top": [0, 0, L]}, landmarks={"malleolus": lm0})}, world="model")
     unseen = {"fibula": [((0, 0, -1.0), -(cut_z + 15.0))]}     # z < cut + 15: the extraction's last pitch
@@ -799,18 +804,13 @@ def test_a_bone_whose_extraction_ends_with_its_marrow_gets_its_tip_back():
     that end is a cut (unseen). Plain, the warp leaves the tip where the template's shorter bone put it;
     with ``cover_marrow`` the template's marrow is stretched to the extraction's end, and the tip, 14 mm
     past it in the template, lands within a few mm of the subject's."""
-    import pyvista as pv
-
     L, s, gap = 260.0, 1.08, 14.0
     rod = _tapered_rod(L, radius=7.0, taper=20.0)
     V, F = np.asarray(rod.vertices), np.asarray(rod.faces)
     inner = trimesh.creation.cylinder(radius=3.5, segment=[[0, 0, gap], [0, 0, L - 20.0]])
     tV = V * [1.0, 1.0, s] - [0, 0, (s - 1.0) * L]          # the subject: its tip (s - 1) L = 20.8 mm lower
     marrow_end = gap * s - (s - 1.0) * L
-    poly = pv.PolyData(tV, np.hstack([np.full((len(F), 1), 3), F]).ravel())
-    cut = poly.clip_closed_surface(normal=(0, 0, 1.0), origin=(0, 0, marrow_end)).triangulate()
-    cut = trimesh.Trimesh(np.asarray(cut.points), np.asarray(cut.faces).reshape(-1, 4)[:, 1:], process=True)
-    target = Mesh(np.asarray(cut.vertices), np.asarray(cut.faces), "lps")
+    target = _kept_above(tV, F, marrow_end)
     sk = Skeleton({"radius": Bone("radius", None, Mesh(V, F, "radius"), np.eye(4), joint_centres={"top": [0, 0, L]},
                                   landmarks={"styloid": [0.0, 0.0, 0.5]},
                                   inner_mesh=Mesh(np.asarray(inner.vertices), np.asarray(inner.faces), "radius"))},
