@@ -540,9 +540,9 @@ FOLLOWED_HEADS = ("femur", "humerus")
 #: How far (mm) a bone's rigid fit may move it from where the template was placed before its target is
 #: taken for another bone's (``warp_skeleton``'s ``max_shift_mm``; bones carried onto joints, twice that).
 #: The placement from the body's extent is that far off: the demo subject's (seed 0) femora sat 35-41 mm
-#: too high, their heads' top sections the only ones its femoral target had lost (a false section above the
-#: right head, dropped by the seed margin's gap limit), and at 40 mm the right femur's correct fit (40.7 mm)
-#: was refused, then its pelvis and spine carried from it (cervical vertebrae 20-40 mm off).
+#: too high. Once the seed margin's gap limit dropped a false section above its right femoral head, the
+#: right femur's correct fit (40.7 mm) was refused at 40 mm, and its pelvis and spine were carried from
+#: it (cervical vertebrae 20-40 mm off).
 PLACED_MAX_SHIFT_MM = 60.0
 
 #: The long bones whose distal end is a process without marrow, the ulnar styloid (the template's marrow
@@ -560,8 +560,8 @@ MARROWLESS_ENDS = ("ulna",)
 #: fibula's ends lie free of other long bones' lines; a femoral head's search runs on into the pelvis, so
 #: its extent is no bound. A radius's or ulna's could run on into the carpals (9-28 mm past the bone on
 #: phantoms, before :func:`bonecap.segmentation.bones.defer_to_shaft_stacks` and the seed margin's gap
-#: limit); their extraction ends short of their styloids instead, and it is their marrow that covers it
-#: (:data:`MARROWLESS_ENDS`).
+#: limit); now their extractions end short of their styloids: the ulna's marrow covers its extraction
+#: (:data:`MARROWLESS_ENDS`), the radius's length is the template's proportion.
 COVERED_EXTENTS = ("fibula",)
 
 

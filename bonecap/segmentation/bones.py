@@ -16,6 +16,8 @@ Public API
 - :data:`LONG_BONES`, :func:`default_rule` ``(bone) -> "cortical" | "density"``
 - :func:`slice_seeds` ``(volume, polyline_lps, margin_mm=20.0) -> list of ndarray (n_k, 2)``
 - :func:`segment_bones` ``(volume, seeds, *, body_mask=None, rules=None, progress=True, ...) -> (labels, ids)``
+- :func:`keep_continuous` (the continuity walk on given labels), :func:`defer_to_shaft_stacks`
+  (overlapping stacks: a long bone's sections kept where the stack holding its shaft labels it too)
 
 References
 ----------
@@ -573,7 +575,8 @@ def segment_bones(volume: Volume, seeds: Mapping[str, np.ndarray], *, body_mask:
         stack (see :func:`~bonecap.segmentation.density.density_candidates`).
     continuity : bool
         Keep only the sections of each long bone that continue it from its
-        shaft outwards (:func:`_keep_continuous`; default). Off for a stack that
+        shaft outwards (:func:`_keep_continuous`; default), and none the seed
+        margin found past more than :data:`MARGIN_GAP_MM` of empty slices. Off for a stack that
         is registered as a whole afterwards, where every section helps (the
         forearm stacks: in a pronated forearm the ulna's chain breaks where its
         seed took the radius).
