@@ -1103,17 +1103,15 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     def warp_bone(name: str, start: np.ndarray, prior: float) -> dict[str, Any]:
         bone = template.bones[name]
         src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
-        check = src_world if bone.inner_mesh is None else np.concatenate(
-            [src_world, _apply(bone.bone_to_world, bone.inner_mesh.vertices)])
+        inner = None if bone.inner_mesh is None else _apply(bone.bone_to_world, bone.inner_mesh.vertices)
+        check = src_world if inner is None else np.concatenate([src_world, inner])
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
         # checks them all
         check = check[::2]
         return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], cuts.get(name, ())), start,
                          n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
-                         check, cover=name in cover,
-                         marrow=_apply(bone.bone_to_world, bone.inner_mesh.vertices)
-                         if name in cover_marrow and bone.inner_mesh is not None else None)
+                         check, cover=name in cover, marrow=inner if name in cover_marrow else None)
 
     if start_from == "placed":
         # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
