@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Bone, Skeleton
+from bonecap.motion._qcp import place_points
 from bonecap.motion.lsq import _fit_qcp, lowpass_markers, plan_segments, solve_lsq
 from bonecap.motion.rigid import fit_rigid, rotation_angle_deg
 from bonecap.skeleton.kinematics import pose_skeleton
@@ -100,6 +101,45 @@ def test_qcp_batch_of_segments_equals_one_by_one():
         assert (v[i] == vi).all()
         assert np.abs(R[i][vi] - Ri[vi]).max() < 1e-9 and np.abs(t[i][vi] - ti[vi]).max() < 1e-6
     assert not v[2, :5].any() and v[2, 5:].all()
+
+
+def test_qcp_exact_far_from_the_lab_origin_and_on_strided_views():
+    """The sweeps hand the compiled fit views into padded buffers (strided), with lab points metres
+    from the origin: noise-free points give the rotation to rounding, whatever the layout."""
+    rng = np.random.default_rng(8)
+    F, K, Kpad = 50, 5, 9
+    P = rng.normal(0, 40, (K, 3))
+    R = Rotation.random(F, random_state=9).as_matrix()
+    t = rng.uniform(-3000, 3000, (F, 3))
+    buf = np.full((F, 3, Kpad), -1e5)                       # padding that must never be read
+    buf[:, :, :K] = np.einsum("fij,kj->fik", R, P) + t[:, :, None]
+    wbuf = np.ones((F, Kpad))
+    Q, w = buf[:, :, :K], wbuf[:, :K]
+    assert not Q.flags.c_contiguous
+    Rq, tq, v = _fit_qcp(P, Q, w)
+    assert v.all()
+    assert np.abs(Rq - R).max() < 1e-11 and np.abs(tq - t).max() < 1e-8
+
+
+def test_place_points_carries_points_and_drops_unsolved_frames():
+    """The joint pseudo-markers: each point carried by its neighbour's pose into consecutive slots,
+    weight times the scale; a frame where the neighbour is not solved (NaN) gets weight 0 and a
+    finite target, so the fit ignores it."""
+    rng = np.random.default_rng(10)
+    F, K = 7, 6
+    T = np.tile(np.eye(4), (F, 1, 1))
+    T[:, :3, :3] = Rotation.random(F, random_state=11).as_matrix()
+    T[:, :3, 3] = rng.normal(0, 500, (F, 3))
+    T[2] = np.nan
+    pts = rng.normal(0, 30, (2, 3))
+    Q, W = np.full((F, 3, K), 5.0), np.full((F, K), 9.0)
+    place_points(T, pts, np.array([10.0, 1.0]), 0.5, Q, W, 3)
+    ok = np.arange(F) != 2
+    expect = np.einsum("fij,kj->fik", T[ok, :3, :3], pts) + T[ok, :3, 3, None]
+    assert np.allclose(Q[ok][:, :, 3:5], expect, atol=1e-9)
+    assert (W[ok][:, 3:5] == [5.0, 0.5]).all()
+    assert (Q[2, :, 3:5] == 0).all() and (W[2, 3:5] == 0).all()
+    assert (Q[:, :, :3] == 5.0).all() and (Q[:, :, 5] == 5.0).all() and (W[:, [0, 1, 2, 5]] == 9.0).all()
 
 
 def test_plan_segments_rules():

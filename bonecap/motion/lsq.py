@@ -57,10 +57,14 @@ few steps reach it to 0.0003 degree in a third of the time.
 
 The closed-form weighted fit is Horn's (1987) unit-quaternion solution with
 the largest eigenvalue found by Newton's method on the characteristic
-polynomial (the QCP method of Theobald 2005): sums over points are matrix
-products, the rest elementwise arithmetic on per-frame arrays -- no
-per-frame LAPACK call (3-4x faster here than numpy's batched 3x3 SVD) and no
-Python loop over frames (loops run over segments, colours and sweeps only).
+polynomial (the QCP method of Theobald 2005), compiled with numba
+(:mod:`bonecap.motion._qcp`): one loop over a batch's fits and frames, no
+per-frame LAPACK call and no numpy temporaries; the joint pseudo-markers are
+placed by a compiled loop too. Python loops run over segments, colours and
+sweeps only. Written with numpy arrays instead (per-frame arrays, ~150 array
+operations a fit) the same fits took 2.5-4x longer on the Rajagopal
+phantom's trials (3 700 -> 15 000 frames per CPU second; 9 800 -> 25 300 on
+a 10 000-frame walk), most of it numpy's per-call overhead.
 
 Shoulder girdles: the clavicle and scapula are one segment (one acromion
 marker), turning on the thorax at the sternoclavicular joint. With one marker
@@ -109,6 +113,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bonecap.model import Motion, Skeleton
+from bonecap.motion._qcp import place_points, qcp_fits
 from bonecap.skeleton.kinematics import AXIS_HOLD_JOINTS, GIRDLE_JOINTS, HINGE_JOINTS, PIVOT_JOINTS, parent_joint_key
 
 __all__ = ["Segment", "SegmentPlan", "plan_segments", "solve_lsq", "lowpass_markers", "DEFAULT_JOINT_WEIGHT",
@@ -646,18 +651,20 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     pooled = {r: 0 for r in roots}
     for b in marker_bones:
         pooled[seg_root[b]] += 1
+    # every root's world -> bone inverse in one call (a solve per member was most of a short trial's plan)
+    to_root = dict(zip(roots, np.linalg.inv(np.array([skeleton.bones[r].bone_to_world for r in roots]))))
     segs = []
     for r in roots:
         members = [r] + [n for n in names if seg_root[n] == r and n != r]
         T_r = skeleton.bones[r].bone_to_world
-        rest = {m: np.linalg.solve(T_r, skeleton.bones[m].bone_to_world) for m in members}
+        rest = {m: to_root[r] @ skeleton.bones[m].bone_to_world for m in members}
         pb = skeleton.bones[r].parent
         parent = -1 if pb is None else index[seg_root[pb]]
         j = joint[r] if parent >= 0 else None
         j_self = j_par = a_self = a_par = None
         if j is not None:
             j_self = skeleton.bones[r].joint_centres[j]
-            P = np.linalg.solve(skeleton.bones[roots[parent]].bone_to_world, skeleton.bones[pb].bone_to_world)
+            P = to_root[roots[parent]] @ skeleton.bones[pb].bone_to_world
             j_par = P[:3, :3] @ skeleton.bones[pb].joint_centres[parent_joint_key(skeleton, r, j)] + P[:3, 3]
             a_self = axis[r] if r in hinged else None
             if a_self is not None:
@@ -710,98 +717,21 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
 
     Notes
     -----
-    Sums over points are matrix products with the constant ``P`` (BLAS); the
-    rest is elementwise on (F,) arrays -- no per-frame LAPACK call.
+    One compiled loop over fits and frames (:func:`bonecap.motion._qcp.qcp_fits`): no
+    per-frame LAPACK call, no numpy temporaries.
     """
+
     single = P.ndim == 2
     if single:
         P, Q, w = P[None], Q[None], w[None]
-    G, F0, _, K = Q.shape
-    W = w.sum(-1)
-    wn = w / np.where(W > 0, W, 1.0)[..., None]
-    cp = wn @ P                                   # (G, F, 3)
-    WQ = Q * wn[:, :, None, :]                    # (G, F, 3, K)
-    cq = WQ.sum(-1)                               # (G, F, 3)
-    # uncentred sums: the centred ones are these minus the centroids' products (one pass less over Q;
-    # lab coordinates of ~2 m against spreads of ~5 cm lose ~3 of 16 digits)
-    S = (WQ.reshape(G, F0 * 3, K) @ P).reshape(G, F0, 3, 3)      # S[.., j, i] = sum w q_j p_i
-    PP = (P[:, :, :, None] * P[:, :, None, :]).reshape(G, K, 9)
-    C = (wn @ PP).reshape(G, F0, 3, 3) - cp[..., :, None] * cp[..., None, :]
-    # from here on every fit's frames are one batch
-    F = G * F0
-    S, C, cp, cq = S.reshape(F, 3, 3), C.reshape(F, 3, 3), cp.reshape(F, 3), cq.reshape(F, 3)
-    trC = C[:, 0, 0] + C[:, 1, 1] + C[:, 2, 2]
-    e2 = 0.5 * (trC ** 2 - np.einsum("fij,fij->f", C, C))  # l1 l2 + l1 l3 + l2 l3
-    with np.errstate(invalid="ignore", divide="ignore"):
-        spread = np.sqrt(np.clip(e2, 0, None)) / trC
-    valid = (np.count_nonzero(w, axis=-1).reshape(F) >= 3) & (trC > 0) & (spread >= _MIN_SPREAD)
-
-    # S_ab = sum_k w_k (p_k - cp)_a (q_k - cq)_b
-    Sxx, Sxy, Sxz = (S[:, j, 0] - cp[:, 0] * cq[:, j] for j in range(3))
-    Syx, Syy, Syz = (S[:, j, 1] - cp[:, 1] * cq[:, j] for j in range(3))
-    Szx, Szy, Szz = (S[:, j, 2] - cp[:, 2] * cq[:, j] for j in range(3))
-    n = [[Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx],
-         [None, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz],
-         [None, None, -Sxx + Syy - Szz, Syz + Szy],
-         [None, None, None, -Sxx - Syy + Szz]]
-    for i in range(4):
-        for j in range(i):
-            n[i][j] = n[j][i]
-    # Characteristic polynomial l^4 + c2 l^2 + c1 l + c0 (trace N = 0); Newton from the
-    # upper bound (|Pc|^2 + |Qc|^2) / 2 decreases monotonically onto the largest root.
-    c2 = -2.0 * sum(x * x for x in (Sxx, Sxy, Sxz, Syx, Syy, Syz, Szx, Szy, Szz))
-    c1 = -8.0 * _det3s([[Sxx, Sxy, Sxz], [Syx, Syy, Syz], [Szx, Szy, Szz]])
-    c0 = _det4(n)
-    qq = np.einsum("fik,fik->f", WQ.reshape(F, 3, K), Q.reshape(F, 3, K)) - np.einsum("fi,fi->f", cq, cq)
-    lam = 0.5 * (trC + qq)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for _ in range(newton_steps):
-            l2 = lam * lam
-            f = l2 * l2 + c2 * l2 + c1 * lam + c0
-            df = 4.0 * l2 * lam + 2.0 * c2 * lam + c1
-            step = np.where(df != 0, f / df, 0.0)
-            lam = lam - step
-            # quadratic convergence: three or four steps reach rounding level (a phantom walk), then stop
-            if not (np.abs(step) > 1e-13 * np.abs(lam)).any():
-                break
-    a = [[n[i][j] - lam if i == j else n[i][j] for j in range(4)] for i in range(4)]
-    # Eigenvector: a row of adj(A) (A = N - lam I is symmetric, rank 3 at the root, so
-    # adj(A) = c q q^T). Its diagonal c q_i^2 picks the row with the largest component
-    # (the best conditioned); only that row is computed, frame by frame group.
-    def cof(i, j, idx=slice(None)):
-        rows_ = [r for r in range(4) if r != i]
-        cols_ = [c for c in range(4) if c != j]
-        return (-1) ** (i + j) * _det3s([[a[r][c][idx] for c in cols_] for r in rows_])
-
-    diag = np.stack([cof(i, i) for i in range(4)], axis=1)
-    best = np.argmax(np.abs(diag), axis=1)
-    q = [np.zeros(F) for _ in range(4)]
-    for i in range(4):
-        sel = np.flatnonzero(best == i)
-        if len(sel) == 0:
-            continue
-        idx = slice(None) if len(sel) == F else sel
-        for j in range(4):
-            q[j][idx] = cof(i, j, idx) if j != i else diag[idx, i]
-    qn2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-    qn = np.sqrt(qn2)
-    valid &= qn > 0
-    inv = 1.0 / np.where(qn > 0, qn, 1.0)
-    a0, b, c, d = (x * inv for x in q)
-    R = np.empty((F, 3, 3))
-    R[:, 0, 0] = a0 * a0 + b * b - c * c - d * d
-    R[:, 0, 1] = 2 * (b * c - a0 * d)
-    R[:, 0, 2] = 2 * (b * d + a0 * c)
-    R[:, 1, 0] = 2 * (b * c + a0 * d)
-    R[:, 1, 1] = a0 * a0 - b * b + c * c - d * d
-    R[:, 1, 2] = 2 * (c * d - a0 * b)
-    R[:, 2, 0] = 2 * (b * d - a0 * c)
-    R[:, 2, 1] = 2 * (c * d + a0 * b)
-    R[:, 2, 2] = a0 * a0 - b * b - c * c + d * d
-    t = cq - (R[:, :, 0] * cp[:, 0, None] + R[:, :, 1] * cp[:, 1, None] + R[:, :, 2] * cp[:, 2, None])
+    G, F, _, K = Q.shape
+    R = np.empty((G, F, 3, 3))
+    t = np.empty((G, F, 3))
+    valid = np.empty((G, F), bool)
+    qcp_fits(np.asarray(P, float), Q, w, int(newton_steps), _MIN_SPREAD, R, t, valid)
     if single:
-        return R, t, valid
-    return R.reshape(G, F0, 3, 3), t.reshape(G, F0, 3), valid.reshape(G, F0)
+        return R[0], t[0], valid[0]
+    return R, t, valid
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -1279,6 +1209,27 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     scapula_slots = {rh.segment: [i for i, m in enumerate(seg_markers[rh.segment])
                                   if marker_bones[m] == rh.scapula] for rh in rhythms}
 
+    # Each segment's links as pseudo-marker tables, once per solve: the points in the parent's
+    # frame (its own links, targets from the parent) and in its own (the links its parent's fit
+    # takes as targets from it), their weights, and runs of consecutive links that share a
+    # neighbour pose (a one-marker girdle's prior point is carried by the swung parent pose).
+    def _link_table(s_, side):
+        seg = segs[s_]
+        links = seg.links()
+        if not links:
+            return np.zeros((0, 3)), np.zeros(0), []
+        prior = seg.prior_slot() if s_ in swung else None
+        runs, a = [], 0
+        for i in range(1, len(links) + 1):
+            if i == len(links) or (i == prior) != (i - 1 == prior):
+                runs.append((a == prior, a, i))
+                a = i
+        return (np.array([pair[side] for pair in links], float),
+                np.array(seg.link_weights(joint_weight), float), runs)
+
+    own_links = [_link_table(s_, 1) for s_ in range(S)]
+    child_links = [_link_table(s_, 0) for s_ in range(S)]
+
     T = np.full((S, F, 4, 4), np.nan)
     ok = np.zeros((S, F), bool)
     model_clamped = {b: np.zeros(F, bool) for b in model_bones}
@@ -1372,24 +1323,22 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
             seg = segs[s_]
             Q, Wt = bufs[s_]
             slot = len(seg_markers[s_])
-            # an arm hangs from its girdle's turned scapula; a one-marker girdle's prior swings
-            T_par = Tb[seg.parent] @ turns[seg.parent] if s_ in hung else Tb[seg.parent]
-            prior = seg.prior_slot() if s_ in swings else None
-            pseudo = [(Tb[seg.parent] @ swings[s_] if i == prior else T_par, p_par, wj)
-                      for i, ((_, p_par), wj) in enumerate(zip(seg.links(), seg.link_weights(joint_weight)))]
+            pts, wts, runs = own_links[s_]
+            if runs:
+                # an arm hangs from its girdle's turned scapula; a one-marker girdle's prior swings
+                T_par = Tb[seg.parent] @ turns[seg.parent] if s_ in hung else Tb[seg.parent]
+                for prior, a, b in runs:
+                    Tn = Tb[seg.parent] @ swings[s_] if prior else T_par
+                    place_points(Tn, pts[a:b], wts[a:b], 1.0, Q, Wt, slot + a)
+                slot += len(pts)
             for c in children[s_]:
                 wc = 0.0 if segs[c].root in fixed else 1.0
                 T_c = unturned[s_] @ Tb[c] if c in hung else Tb[c]
-                prior = segs[c].prior_slot() if c in swings else None
-                pseudo += [(unswung[c] @ Tb[c] if i == prior else T_c, p_self, wc * wj)
-                           for i, ((p_self, _), wj) in enumerate(zip(segs[c].links(),
-                                                                     segs[c].link_weights(joint_weight)))]
-            for Tn, point, wj in pseudo:
-                target = _apply(Tn, point)
-                good = np.isfinite(target).all(axis=1)
-                Q[:, :, slot] = np.where(good[:, None], target, 0.0)
-                Wt[:, slot] = np.where(good, wj, 0.0)
-                slot += 1
+                pts, wts, runs = child_links[c]
+                for prior, a, b in runs:
+                    Tn = unswung[c] @ Tb[c] if prior else T_c
+                    place_points(Tn, pts[a:b], wts[a:b], wc, Q, Wt, slot + a)
+                slot += len(pts)
 
         def sweep(k, tol):
             """One red-black sweep over the free segments; with ``tol``: whether none moved more."""
