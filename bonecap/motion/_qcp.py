@@ -36,7 +36,8 @@ def _det3(a00, a01, a02, a10, a11, a12, a20, a21, a22):
             + a02 * (a10 * a21 - a11 * a20))
 
 
-@njit(cache=True, nogil=True)
+# an explicit signature: called with constant indices, numba would compile one version per constant
+@njit("float64(float64[:, ::1], int64, int64)", cache=True, nogil=True)
 def _cofactor(A, i, j):
     """Cofactor (i, j) of the 4 x 4 matrix ``A``."""
     # the rows and columns left: k, skipping the one removed

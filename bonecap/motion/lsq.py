@@ -728,7 +728,10 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
     R = np.empty((G, F, 3, 3))
     t = np.empty((G, F, 3))
     valid = np.empty((G, F), bool)
-    qcp_fits(np.asarray(P, float), Q, w, int(newton_steps), _MIN_SPREAD, R, t, valid)
+    # contiguous inputs: one compiled specialisation (the first sweep's views into the colour buffers
+    # are small copies; the batched sweeps' buffers are contiguous already)
+    qcp_fits(np.ascontiguousarray(P, float), np.ascontiguousarray(Q, float), np.ascontiguousarray(w, float),
+             int(newton_steps), _MIN_SPREAD, R, t, valid)
     if single:
         return R[0], t[0], valid[0]
     return R, t, valid
