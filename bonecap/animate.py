@@ -427,7 +427,9 @@ def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike],
     dict
         Per trial: frames, rate, markers used and missing, bones valid share,
         residual median, the markers far from their bones
-        (:func:`markers_off_their_bones`), seconds, and the output paths. Also written as
+        (:func:`markers_off_their_bones`), seconds, and the output paths; once, the seconds
+        spent loading the solver's compiled code before the first trial
+        (``compiled_code_load_seconds``, :func:`bonecap.motion._qcp.warm_up`). Also written as
         ``OUT_DIR/animate_report.json``.
     """
     import json
@@ -446,6 +448,13 @@ def animate(subject_dir: str | os.PathLike, trials: Sequence[str | os.PathLike],
     # the scapulae turn on their clavicles with the arms for a subject built from MRI (Subject.follows_rhythm)
     report: dict[str, Any] = {"subject": str(subject_dir), "solver": solver, "forearm_model": forearm,
                               "girdle_rhythm": subject.follows_rhythm(), "trials": {}}
+    # the solver's compiled kernels loaded once (compiled, the first time after an install) before the
+    # trials are timed: a trial's solve_seconds is its own solve
+    t0 = time.perf_counter()
+    from bonecap.motion._qcp import warm_up
+
+    warm_up()
+    report["compiled_code_load_seconds"] = round(time.perf_counter() - t0, 3)
     for path, trial, names, measured, missing in progress(loaded, "animate", unit="trial"):
         t0 = time.perf_counter()
         motion = solve_trial(subject, names, measured, rate=trial.rate, solver=solver, forearm=forearm,

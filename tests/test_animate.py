@@ -253,6 +253,9 @@ def test_bad_trials(pycgm_subject, shared_data, tmp_path, cli):
     rep = json.loads((tmp_path / "out/animate_report.json").read_text())
     assert rep["trials"]["no_rkne"]["markers_missing"] == ["RKNE"]
     assert rep["girdle_rhythm"] is False                # a template scaled to the static (no MRI)
+    # the solver's compiled code loaded before the trials, timed apart from their solves
+    assert 0 <= rep["compiled_code_load_seconds"] < 60
+    assert all(r["solve_seconds"] >= 0 and r["frames_per_second"] > 0 for r in rep["trials"].values())
     # a C3D with no points at all: one clear line, exit 1, nothing written
     write_c3d(Trial([], np.zeros((10, 0, 3)), 100.0), tmp_path / "empty.c3d")
     res = cli("animate", subj, tmp_path / "empty.c3d", "-o", tmp_path / "out2")

@@ -30,7 +30,8 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit("float64(float64, float64, float64, float64, float64, float64, float64, float64, float64)",
+      cache=True, nogil=True)
 def _det3(a00, a01, a02, a10, a11, a12, a20, a21, a22):
     return (a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20)
             + a02 * (a10 * a21 - a11 * a20))
@@ -53,7 +54,11 @@ def _cofactor(A, i, j):
     return d if (i + j) % 2 == 0 else -d
 
 
-@njit(cache=True, nogil=True)
+# explicit signatures: one compiled version each, compiled (or loaded from the cache) when this module
+# is imported; the fit's inputs are made contiguous by its caller, the pseudo-markers' targets are views
+# into padded buffers, contiguous or not (a contiguous array is accepted where any layout is)
+@njit("void(float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], int64, float64, "
+      "float64[:, :, :, ::1], float64[:, :, ::1], boolean[:, ::1])", cache=True, nogil=True)
 def qcp_fits(P, Q, w, newton_steps, min_spread, R, t, valid):
     """Weighted rigid fits ``P -> Q`` for ``G`` point sets over ``F`` frames, in place.
 
@@ -203,7 +208,8 @@ def qcp_fits(P, Q, w, newton_steps, min_spread, R, t, valid):
             valid[g, f] = ok
 
 
-@njit(cache=True, nogil=True)
+@njit("void(float64[:, :, :], float64[:, :], float64[:], float64, float64[:, :, :], float64[:, :], int64)",
+      cache=True, nogil=True)
 def place_points(T, pts, wts, scale, Q, W, slot):
     """Joint pseudo-markers of :mod:`bonecap.motion.lsq`: ``pts`` carried by ``T`` into target slots.
 
@@ -237,3 +243,18 @@ def place_points(T, pts, wts, scale, Q, W, slot):
                 for i in range(3):
                     Q[f, i, slot + m] = 0.0
                 W[f, slot + m] = 0.0
+
+
+def warm_up() -> None:
+    """Run each kernel once on a tiny input: a check that the compiled code loaded and runs.
+
+    The kernels are compiled when this module is first imported after an install (~3 s; numba caches
+    the machine code beside the module) and loaded from that cache by every later process (~0.3 s,
+    ~0.65 s with numba's own import). ``bonecap animate`` imports this module and calls this before
+    its trials, timed apart, so that a trial's ``solve_seconds`` is its own solve.
+    """
+    G, F, K = 1, 2, 3
+    R, t, valid = np.empty((G, F, 3, 3)), np.empty((G, F, 3)), np.empty((G, F), np.bool_)
+    qcp_fits(np.zeros((G, K, 3)), np.zeros((G, F, 3, K)), np.zeros((G, F, K)), 1, 1e-3, R, t, valid)
+    Q, W = np.zeros((F, 3, K + 1))[:, :, :K], np.zeros((F, K + 1))[:, :K]
+    place_points(np.full((F, 4, 4), np.nan), np.zeros((1, 3)), np.ones(1), 1.0, Q, W, 0)
