@@ -142,6 +142,30 @@ def test_place_points_carries_points_and_drops_unsolved_frames():
     assert (Q[:, :, :3] == 5.0).all() and (Q[:, :, 5] == 5.0).all() and (W[:, [0, 1, 2, 5]] == 9.0).all()
 
 
+def test_compiled_kernels_check_shapes_and_compile_without_a_cache_where_none_can_be_written():
+    """The compiled loops do not check indices themselves: disagreeing shapes or slots raise instead of
+    reading or writing past the arrays. Read-only inputs are fitted (copied). A function numba cannot
+    cache (here: no source file, as for a read-only install without a writable home) still compiles."""
+    from bonecap.motion import _qcp
+
+    with pytest.raises(ValueError, match="shapes"):
+        _fit_qcp(np.zeros((4, 3)), np.zeros((5, 3, 3)), np.ones((5, 3)))
+    with pytest.raises(ValueError, match="slots"):
+        place_points(np.zeros((2, 4, 4)), np.zeros((2, 3)), np.ones(2), 1.0, np.zeros((2, 3, 3)),
+                     np.zeros((2, 3)), 2)
+    rng = np.random.default_rng(12)
+    P = rng.normal(0, 30, (5, 3))
+    Q = (P @ Rotation.random(random_state=13).as_matrix().T + 500.0).T[None].repeat(4, axis=0)
+    w = np.ones((4, 5))
+    for a in (P, Q, w):
+        a.flags.writeable = False
+    assert _fit_qcp(P, Q, w)[2].all()
+    ns: dict = {}
+    exec("def plus_one(x):\n    return x + 1.0\n", ns)             # no file: numba has no cache place
+    f = _qcp._compiled("float64(float64)")(ns["plus_one"])
+    assert f(1.0) == 2.0
+
+
 def test_plan_segments_rules():
     skel = chain_skeleton()
     plan = plan_segments(skel, MARKER_BONES)

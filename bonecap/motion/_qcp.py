@@ -11,12 +11,12 @@ registers.
 The mathematics is Horn's (1987) unit-quaternion solution with the largest eigenvalue of the
 4 x 4 key matrix found by Newton's method on its characteristic polynomial (Theobald 2005, QCP),
 the eigenvector as the best-conditioned row of the adjugate of ``N - lambda I`` -- the steps and the
-validity rule of the numpy version it replaced (session 42: the solver's poses on the Rajagopal
-phantom's trials agreed to 2e-13 in rotation and 2e-12 mm; ``tests/test_motion_lsq.py`` checks the
+validity rule of the numpy version it replaced (session 42: the solver's poses on the phantoms'
+trials agreed to rounding, 1e-12 in rotation and 3e-11 mm; ``tests/test_motion_lsq.py`` checks the
 fit against an SVD fit, noise-free points far from the lab origin and strided inputs). The sums are
-taken about the weighted centroids (two passes over a frame's few points): the numpy version
-subtracted the centroids' products from uncentred sums to save a pass over its arrays, which lost
-~3 of 16 digits.
+taken about the weighted centroids (a frame's few points visited three times: weights, centroids,
+centred sums): the numpy version subtracted the centroids' products from uncentred sums to save a
+pass over its arrays, which lost ~3 of 16 digits.
 
 References
 ----------
@@ -32,15 +32,30 @@ import numpy as np
 from numba import njit
 
 
-@njit("float64(float64, float64, float64, float64, float64, float64, float64, float64, float64)",
-      cache=True, nogil=True)
+def _compiled(signature: str):
+    """``numba.njit(signature)``, its machine code cached on disk where numba finds a writable place.
+
+    numba caches beside this module or in the user's cache directory (``NUMBA_CACHE_DIR``); with
+    neither writable (a read-only install run by a user without a writable home) it refuses to
+    compile a ``cache=True`` function at all. Such a process compiles without the cache (~3 s)
+    instead of failing to import the motion solver.
+    """
+    def decorate(fn):
+        try:
+            return njit(signature, cache=True, nogil=True)(fn)
+        except RuntimeError:            # "cannot cache function ...: no locator available"
+            return njit(signature, cache=False, nogil=True)(fn)
+    return decorate
+
+
+@_compiled("float64(float64, float64, float64, float64, float64, float64, float64, float64, float64)")
 def _det3(a00, a01, a02, a10, a11, a12, a20, a21, a22):
     return (a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20)
             + a02 * (a10 * a21 - a11 * a20))
 
 
 # an explicit signature: called with constant indices, numba would compile one version per constant
-@njit("float64(float64[:, ::1], int64, int64)", cache=True, nogil=True)
+@_compiled("float64(float64[:, ::1], int64, int64)")
 def _cofactor(A, i, j):
     """Cofactor (i, j) of the 4 x 4 matrix ``A``."""
     # the rows and columns left: k, skipping the one removed
@@ -59,8 +74,8 @@ def _cofactor(A, i, j):
 # explicit signatures: one compiled version each, compiled (or loaded from the cache) when this module
 # is imported; the fit's inputs are made contiguous by its caller, the pseudo-markers' targets are views
 # into padded buffers, contiguous or not (a contiguous array is accepted where any layout is)
-@njit("void(float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], int64, float64, "
-      "float64[:, :, :, ::1], float64[:, :, ::1], boolean[:, ::1])", cache=True, nogil=True)
+@_compiled("void(float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], int64, float64, "
+           "float64[:, :, :, ::1], float64[:, :, ::1], boolean[:, ::1])")
 def qcp_fits(P, Q, w, newton_steps, min_spread, R, t, valid):
     """Weighted rigid fits ``P -> Q`` for ``G`` point sets over ``F`` frames, in place.
 
@@ -83,6 +98,11 @@ def qcp_fits(P, Q, w, newton_steps, min_spread, R, t, valid):
     """
     G, F = Q.shape[0], Q.shape[1]
     K = Q.shape[3]
+    # the compiled loop does not check its indices: disagreeing shapes would read past the arrays
+    if (P.shape[0] != G or P.shape[1] != K or P.shape[2] != 3 or Q.shape[2] != 3 or w.shape[0] != G
+            or w.shape[1] != F or w.shape[2] != K or R.shape[0] != G or R.shape[1] != F
+            or t.shape[0] != G or t.shape[1] != F or valid.shape[0] != G or valid.shape[1] != F):
+        raise ValueError("qcp_fits: the shapes of P, Q, w and the outputs do not agree")
     N = np.empty((4, 4))
     A = np.empty((4, 4))
     for g in range(G):
@@ -210,8 +230,7 @@ def qcp_fits(P, Q, w, newton_steps, min_spread, R, t, valid):
             valid[g, f] = ok
 
 
-@njit("void(float64[:, :, :], float64[:, :], float64[:], float64, float64[:, :, :], float64[:, :], int64)",
-      cache=True, nogil=True)
+@_compiled("void(float64[:, :, :], float64[:, :], float64[:], float64, float64[:, :, :], float64[:, :], int64)")
 def place_points(T, pts, wts, scale, Q, W, slot):
     """Joint pseudo-markers of :mod:`bonecap.motion.lsq`: ``pts`` carried by ``T`` into target slots.
 
@@ -229,6 +248,10 @@ def place_points(T, pts, wts, scale, Q, W, slot):
     """
     F = T.shape[0]
     n = pts.shape[0]
+    # the compiled loop does not check its indices: a wrong slot would write past the fit's slots
+    if (Q.shape[0] != F or W.shape[0] != F or slot < 0 or slot + n > Q.shape[2] or slot + n > W.shape[1]
+            or wts.shape[0] != n or pts.shape[1] != 3 or Q.shape[1] != 3):
+        raise ValueError("place_points: shapes or slots do not agree")
     for f in range(F):
         good = True
         for i in range(3):

@@ -652,7 +652,8 @@ def plan_segments(skeleton: Skeleton, marker_bones: Sequence[str], *,
     for b in marker_bones:
         pooled[seg_root[b]] += 1
     # every root's world -> bone inverse in one call (a solve per member was most of a short trial's plan)
-    to_root = dict(zip(roots, np.linalg.inv(np.array([skeleton.bones[r].bone_to_world for r in roots]))))
+    to_root = dict(zip(roots, np.linalg.inv(np.array([skeleton.bones[r].bone_to_world for r in roots]))
+                       if roots else []))
     segs = []
     for r in roots:
         members = [r] + [n for n in names if seg_root[n] == r and n != r]
@@ -727,10 +728,14 @@ def _fit_qcp(P: np.ndarray, Q: np.ndarray, w: np.ndarray, newton_steps: int = 10
     R = np.empty((G, F, 3, 3))
     t = np.empty((G, F, 3))
     valid = np.empty((G, F), bool)
-    # contiguous inputs: one compiled specialisation (the first sweep's views into the colour buffers
-    # are small copies; the batched sweeps' buffers are contiguous already)
-    qcp_fits(np.ascontiguousarray(P, float), np.ascontiguousarray(Q, float), np.ascontiguousarray(w, float),
-             int(newton_steps), _MIN_SPREAD, R, t, valid)
+
+    def contiguous(a):
+        # the kernel's one signature takes writable, contiguous float64 arrays: the first sweep's views
+        # into the colour buffers become small copies, the batched sweeps' buffers pass as they are
+        a = np.ascontiguousarray(a, dtype=float)
+        return a if a.flags.writeable else a.copy()
+
+    qcp_fits(contiguous(P), contiguous(Q), contiguous(w), int(newton_steps), _MIN_SPREAD, R, t, valid)
     if single:
         return R[0], t[0], valid[0]
     return R, t, valid
