@@ -262,6 +262,8 @@ def flag_unsupported(skeleton: Skeleton, motion: Motion, marker_bones: list[str]
             continue
         n_seen = seen[:, cols].sum(axis=1)
         weak = (n_seen < len(cols)) & (n_seen < 2)
+        if not weak.any():
+            continue
         for a, z in _runs(weak):
             if z - a > max_gap_frames:
                 lost[a:z, i] = True

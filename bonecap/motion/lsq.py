@@ -1186,7 +1186,9 @@ def solve_lsq(skeleton: Skeleton, marker_bones: Sequence[str], marker_local, mea
     seg_local = []
     for s, seg in enumerate(segs):
         ms = seg_markers[s]
-        pts = [_apply(seg.rest_to_root[marker_bones[m]], local[m]) for m in ms]
+        # each marker from its bone's frame into the segment's (one batched product per segment)
+        rest = np.array([seg.rest_to_root[marker_bones[m]] for m in ms]).reshape(-1, 4, 4)
+        pts = list(_apply(rest, local[ms]))
         pts += [p_self for p_self, _ in seg.links()]
         pts += [p_par for c in children[s] for _, p_par in segs[c].links()]
         seg_local.append(np.array(pts).reshape(-1, 3))
