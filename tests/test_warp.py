@@ -699,6 +699,18 @@ def _tapered_rod(length: float, radius: float = 6.0, taper: float = 30.0) -> tri
     return trimesh.creation.revolve(prof, sections=32)
 
 
+def _cut_end_warps(sk, bone, target, unseen, landmark, truth, option):
+    """The one-bone warp onto a target cut at one end, plain and with ``option`` (``cover`` or
+    ``cover_marrow``) naming the bone: the landmark's error (mm) and the report, keyed False / True."""
+    err, reps = {}, {}
+    for on in (False, True):
+        personal, rep = warp_skeleton(sk, {bone: target}, init=np.eye(4), start_from="placed", unseen=unseen,
+                                      **{option: (bone,) if on else ()})
+        err[on] = np.linalg.norm(personal.bones[bone].landmark_in_world(landmark) - truth)
+        reps[on] = rep
+    return err, reps
+
+
 def _kept_above(V: np.ndarray, F: np.ndarray, z: float) -> Mesh:
     """The closed surface (V, F) cut at height ``z``, its part above kept and capped (a search's cut end)."""
     import pyvista as pv
@@ -766,12 +778,7 @@ def test_a_thin_bone_short_at_a_cut_end_is_covered():
     sk = Skeleton({"fibula": Bone("fibula", None, Mesh(V, F, "fibula"), np.eye(4),
                                   joint_centres={"top": [0, 0, L]}, landmarks={"malleolus": lm0})}, world="model")
     unseen = {"fibula": [((0, 0, -1.0), -(cut_z + 15.0))]}     # z < cut + 15: the extraction's last pitch
-    err, reps = {}, {}
-    for cover in ((), ("fibula",)):
-        personal, rep = warp_skeleton(sk, {"fibula": target}, init=np.eye(4), start_from="placed", unseen=unseen,
-                                      cover=cover)
-        err[bool(cover)] = np.linalg.norm(personal.bones["fibula"].landmark_in_world("malleolus") - lm_true)
-        reps[bool(cover)] = rep
+    err, reps = _cut_end_warps(sk, "fibula", target, unseen, "malleolus", lm_true, "cover")
     assert "covered" in reps[True]["bones"]["fibula"] and "covered" not in reps[False]["bones"]["fibula"]
     assert reps[True]["bones"]["fibula"]["covered"]["lo_mm"] > 8.0
     # the affine-only baseline stays the plain affine ICP
@@ -817,12 +824,7 @@ def test_a_bone_whose_extraction_ends_with_its_marrow_gets_its_tip_back():
                   world="model")
     unseen = {"radius": [((0, 0, -1.0), -(marrow_end + 5.0))]}
     tip_true = np.array([0.0, 0.0, 0.5 * s - (s - 1.0) * L])
-    err, reps = {}, {}
-    for cover in ((), ("radius",)):
-        personal, rep = warp_skeleton(sk, {"radius": target}, init=np.eye(4), start_from="placed", unseen=unseen,
-                                      cover_marrow=cover)
-        err[bool(cover)] = np.linalg.norm(personal.bones["radius"].landmark_in_world("styloid") - tip_true)
-        reps[bool(cover)] = rep
+    err, reps = _cut_end_warps(sk, "radius", target, unseen, "styloid", tip_true, "cover_marrow")
     assert "covered" not in reps[False]["bones"]["radius"]
     assert reps[True]["bones"]["radius"]["covered"]["marrow"]["lo_mm"] > 5.0
     assert err[False] > 10.0, err
