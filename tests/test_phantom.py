@@ -96,13 +96,40 @@ def test_forearm_stacks_and_capsules(phantom):
     for name, pose in fa["poses"].items():
         v = read_dicom_series(phantom / pose["folder"])[0]
         c = np.array(pose["capsule_centres_lps"])
-        assert len(c) == PRESETS["tiny"]["n_capsules"]
+        at_markers = pose["marker_capsules_lps"]
+        assert len(c) == PRESETS["tiny"]["n_capsules"] + len(at_markers)
+        # the capsules at marker spots are the last rows
+        np.testing.assert_allclose(c[len(c) - len(at_markers):], np.array(list(at_markers.values())).reshape(-1, 3))
         # capsules lie inside the stack's field of view
         ijk = v.world_to_index(c)
         assert np.all((ijk > -1) & (ijk < np.array(v.shape)))
         ends = np.array(pose["radioulnar_axis_lps"])
         assert np.linalg.norm(ends - ends0, axis=1).max() < 10.0  # the axis migrates only a little
     assert fa["poses"]["0"]["capsule_centres_lps"] != fa["poses"]["172.1"]["capsule_centres_lps"]
+
+
+def test_forearm_capsules_at_the_marker_spots(phantom):
+    """The forearm stacks' marker capsules lie under the trials' markers, carried with their bones."""
+    import yaml
+
+    fa = json.loads((phantom / "truth/forearm.json").read_text())
+    bones = json.loads((phantom / "truth/skeleton.json").read_text())["bones"]
+    markers = yaml.safe_load((phantom / "truth" / "marker_binding.yaml").read_text())["markers"]
+    seen = set()
+    for name, pose in fa["poses"].items():
+        moved = pose["bone_to_lps"]
+        for m, c in pose["marker_capsules_lps"].items():
+            b = markers[m]["bone"]
+            T = np.array(moved.get(b, bones[b]["bone_to_lps"]))
+            marker = T[:3, :3] @ np.array(markers[m]["local_mm"]) + T[:3, 3]
+            # capsule and marker touch the skin at one spot: centres a marker-minus-capsule radius apart
+            assert np.linalg.norm(marker - np.array(c)) == pytest.approx(7.0 - fa["capsule_radius_mm"], abs=0.05), (
+                name, m)
+            seen.add(m)
+    # the wrist pair that the forearm's twist is read on, in the reference stack at least
+    assert {"RWRA", "RWRB"} <= set(fa["poses"]["0"]["marker_capsules_lps"])
+    assert "RWRA" in fa["poses"]["172.1"]["marker_capsules_lps"]
+    assert {"RWRA", "RWRB", "RELB"} <= seen
 
 
 def test_trials_read_back_with_their_truth(phantom):

@@ -130,6 +130,43 @@ def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float | None
             "centres_lps": {n: c.tolist() for n, c in zip(binding.names, lps)}}
 
 
+def _to_lps_points(p: np.ndarray) -> np.ndarray:
+    return np.asarray(p, float) @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3]
+
+
+def _forearm_marker_capsules(marker_set, skeleton, skin: Mesh, side: str, capsule_radius_mm: float | None = None,
+                             marker_radius_mm: float = 7.0) -> dict[str, tuple[str, np.ndarray]]:
+    """Oil capsules at the forearm markers' spots, model frame, reference pose: name -> (bone, centre).
+
+    The paper marked its marker spots with capsules in the forearm stacks as in
+    the whole body; its twist was read on them. The markers of the forearm are
+    those bound to the ulna or the radius and the elbow line's two epicondyle
+    markers (:data:`bonecap.motion.forearm.FOREARM_MARKERS`). Each is placed as
+    the trials place it (:func:`~bonecap.phantom.trials.place_phantom_markers`,
+    on ``skin``: the forearm's part of the reference skin is enough, the rays
+    and nearest points being local), and its capsule touches the skin at the
+    same spot (centre ``marker_radius - capsule_radius`` nearer the skin).
+    """
+    from bonecap.motion.forearm import FOREARM_MARKERS
+    from bonecap.phantom.mri import CAPSULE_DIAMETER_MM
+    from bonecap.phantom.trials import place_phantom_markers
+
+    if capsule_radius_mm is None:
+        capsule_radius_mm = CAPSULE_DIAMETER_MM / 2
+    forearm_bones = {f"ulna_{side}", f"radius_{side}"}
+    names = [n for n in marker_set.physical
+             if n in FOREARM_MARKERS[side] or marker_set.markers[n].bone in forearm_bones]
+    names = [n for n in names if marker_set.markers[n].bone in skeleton.bones]
+    if not names:
+        return {}
+    binding = place_phantom_markers(marker_set, skeleton, skin, names=names, marker_radius_mm=marker_radius_mm)
+    contact, _, _ = skin.to_trimesh().nearest.on_surface(binding.world)
+    normal = binding.world - contact
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+    centres = contact + capsule_radius_mm * normal
+    return {n: (b, c) for n, b, c in zip(binding.names, binding.bones, centres)}
+
+
 def _faces_across(mesh: Mesh, elbow: np.ndarray, wrist: np.ndarray, lo_mm: float, hi_mm: float) -> np.ndarray:
     """Faces whose extent along elbow -> wrist overlaps ``[lo_mm, hi_mm]`` (0 at the elbow), as a mask."""
     n = np.asarray(wrist, float) - np.asarray(elbow, float)
@@ -146,6 +183,10 @@ def _keep_faces(mesh: Mesh, keep: np.ndarray) -> Mesh:
     new_id = np.cumsum(used) - 1
     return Mesh(mesh.vertices[used], new_id[F], mesh.frame)
 
+
+#: A capsule at a forearm marker's spot, carried with the marker's bone, is shown in a forearm stack while
+#: its centre is within this distance (mm) of one capsule radius from the posed skin.
+_CAPSULE_ON_SKIN_MM = 1.0
 
 #: Slices of a forearm stack reach :data:`~bonecap.phantom.mri.FOREARM_EXTEND_MM` past the
 #: elbow and the wrist, plus half a slice thickness of slice profile; the posed skin and
@@ -294,6 +335,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     t0 = time.perf_counter()
     bar.set_postfix_str("forearm")
     poses, forearm_truth = {}, {}
+    forearm_marker_capsules: dict[str, dict[str, np.ndarray]] = {}
     spheres = {name: _bounding_sphere(b.mesh) for name, b in skeleton.bones.items() if b.mesh is not None}
     crop = None
     for theta in FOREARM_TWISTS_DEG:
@@ -308,6 +350,21 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         if crop is None:
             crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
                                   L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]
+            # the forearm's markers where the trials place them, on the skin of the first (reference) twist
+            at_ref = _forearm_marker_capsules(marker_set, skeleton, _keep_faces(subject.skin, crop[0]), "r")
+        # Each carried with its marker's bone, as the trials carry the marker. The phantom's skin winds
+        # with the radius about the radio-ulnar axis (pose_forearm) while a marker rides its bone: where the
+        # two part (the ulnar styloid's spot is 12 mm under the wound skin at 172 deg, the dorsal forearm's
+        # 5 mm), the capsule would be buried in the tissue or float off it, and this stack does not show it.
+        tm = _keep_faces(posed.skin, crop[0]).to_trimesh() if at_ref else None
+        for mname, (bone, c_ref) in at_ref.items():
+            T = posed.bone_to_world.get(bone, skeleton.bones[bone].bone_to_world) @ np.linalg.inv(
+                skeleton.bones[bone].bone_to_world)
+            c = T[:3, :3] @ c_ref + T[:3, 3]
+            q, _, tri = tm.nearest.on_surface(c[None])
+            height = float((c - q[0]) @ tm.face_normals[tri[0]])      # out of the skin (outward normals)
+            if abs(height - CAPSULE_DIAMETER_MM / 2) <= _CAPSULE_ON_SKIN_MM:
+                forearm_marker_capsules.setdefault(mname, {})[_twist_name(theta)] = _to_lps_points(c)
         for m, keep in zip((posed.skin, posed.muscle), crop):
             if (_faces_across(m, posed.elbow, posed.wrist, -reach, L + reach) & ~keep).any():
                 raise RuntimeError(f"the forearm at {theta} deg moved out of the first twist's crop")
@@ -340,12 +397,13 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         poses, out / "mri", rng, n_capsules=cfg["n_capsules"], pixel_mm=cfg["forearm_pixel_mm"],
         pitch_mm=cfg["forearm_pitch_mm"], thickness_mm=cfg["forearm_pitch_mm"],
         inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"],
-        study_uid=stations.study_uid)
+        study_uid=stations.study_uid, marker_capsules=forearm_marker_capsules)
     # the posed meshes of the three twists (~100 MB at the default preset) are not used again
     del poses, posed, f_layers, f_labels
     for name, st in stacks.items():
         forearm_truth[name]["folder"] = str(st.folder.relative_to(out))
         forearm_truth[name]["capsule_centres_lps"] = np.asarray(st.capsule_centres).tolist()
+        forearm_truth[name]["marker_capsules_lps"] = {m: np.asarray(c).tolist() for m, c in st.marker_capsules.items()}
         forearm_truth[name]["stack"] = st.plan.to_dict()
         if st.labels is not None:
             write_nifti(st.labels, labels_dir / f"forearm_{name}_oracle.nii.gz")
@@ -466,7 +524,7 @@ the C3D trials for the motion truth.
 | `labels/merged.nii.gz` | bone labels of the unmoved truth on one common grid |
 | `labels/forearm_<twist>_oracle.nii.gz` | oracle labels of the posed radius and hand bones (and the ulna) on each forearm stack's grid |
 | `stations.json` | per station: the nominal `affine_voxel_to_lps` written in its DICOM header, `shape`, `slice_thickness_mm`, `true_to_nominal` (4x4, `p_nominal = T @ p_true`: where a point of the true body lay during that station; the body was imaged moved by it), `shift_mm`, `rotation_deg`, `intensity_scale` |
-| `forearm.json` | per forearm twist: `theta_deg`, `radioulnar_axis_lps` (radial-head end, ulnar-head end), `bone_to_lps` of the bones that moved, `capsule_centres_lps`, the stack's geometry; `capsule_radius_mm` |
+| `forearm.json` | per forearm twist: `theta_deg`, `radioulnar_axis_lps` (radial-head end, ulnar-head end), `bone_to_lps` of the bones that moved, `capsule_centres_lps` (all the stack's capsules: the random ones, then those at the forearm markers' spots), `marker_capsules_lps` (marker name -> the centre of the capsule at its spot: the markers on the ulna and the radius and the two epicondyle markers, carried with their bones; 3 mm nearer the skin than the trial's marker), the stack's geometry; `capsule_radius_mm` |
 | `skeleton.json` | the true skeleton at the MRI pose: per bone `parent`, `bone_to_lps`, `joint_centres_lps`, `landmarks_lps` |
 | `subject.json` | seed, template, preset and every drawn parameter (stature, segment scales, femoral anteversion and neck angle, bowing, pelvis width, body shape) |
 | `marker_binding.yaml` | the true marker -> bone binding: bone, position in the bone frame (mm), placement, soft-tissue-artefact class |

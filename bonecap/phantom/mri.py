@@ -1226,11 +1226,20 @@ def _plane_distance_mm(plan: StationPlan, points: np.ndarray) -> np.ndarray:
     return np.abs(k - np.rint(k)) * plan.spacing[2]
 
 
+def _sphere_in_field(plan: StationPlan, centre: np.ndarray, radius_mm: float) -> bool:
+    """Whether a sphere lies wholly inside a stack's field of view (voxel centres, slice reach included)."""
+    inv = np.linalg.inv(plan.affine)
+    k = inv[:3, :3] @ np.asarray(centre, float) + inv[:3, 3]
+    reach = float(radius_mm) / np.asarray(plan.spacing, float)
+    return bool(np.all(k - reach >= -0.5) and np.all(k + reach <= np.asarray(plan.shape) - 0.5))
+
+
 def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | None = None, *,
                    diameter_mm: float = CAPSULE_DIAMETER_MM, plans: Sequence[StationPlan] | None = None,
                    skins: Sequence[Mesh] | None = None, min_plane_distance_mm: float = 0.5,
                    min_separation_mm: float | None = None, region: np.ndarray | None = None,
-                   region_radius_mm: float = 80.0, max_tries: int = 200) -> CapsulePlacement:
+                   region_radius_mm: float = 80.0, max_tries: int = 200,
+                   avoid: np.ndarray | None = None) -> CapsulePlacement:
     """Place capsules on a skin, centres at random depths *between* slice planes.
 
     Parameters
@@ -1262,6 +1271,9 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
     region_radius_mm : float
     max_tries : int
         Rounds of candidate draws before giving up.
+    avoid : ndarray (m, 3), optional
+        Centres of capsules placed otherwise (on ``skin_mesh``'s pose, e.g. at
+        marker spots): the new ones keep ``min_separation_mm`` from them too.
 
     Returns
     -------
@@ -1314,6 +1326,7 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
     chosen_f: list[int] = []
     chosen_b: list[np.ndarray] = []
     chosen_c: list[np.ndarray] = []
+    avoid = np.zeros((0, 3)) if avoid is None else np.asarray(avoid, float).reshape(-1, 3)
     tries = 0
     while len(chosen_f) < n:
         tries += 1
@@ -1332,7 +1345,8 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
         centres = capsule_centres_on(skin_mesh, cand)
         for idx in np.nonzero(ok)[0]:
             c = centres[idx]
-            if chosen_c and np.min(np.linalg.norm(np.asarray(chosen_c) - c, axis=1)) < sep:
+            taken = np.vstack([avoid, np.asarray(chosen_c).reshape(-1, 3)])
+            if len(taken) and np.min(np.linalg.norm(taken - c, axis=1)) < sep:
                 continue
             chosen_f.append(int(f[idx]))
             chosen_b.append(bary[idx])
@@ -1521,12 +1535,16 @@ class ForearmTruth:
         Capsule centres in this pose, LPS mm (true world = nominal here).
     labels : Volume or None
         Oracle bone labels on the stack's grid.
+    marker_capsules : dict of str -> ndarray (3,)
+        The capsules at marker spots in this pose (LPS mm), by marker name;
+        they are also the last rows of ``capsule_centres``.
     """
 
     plan: StationPlan
     folder: Path
     capsule_centres: np.ndarray
     labels: Volume | None = None
+    marker_capsules: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh, str]]],
@@ -1538,7 +1556,8 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
                           intensities: Mapping[str, float] | None = None, noise: float | bool | None = None,
                           texture: Mapping[str, float] | bool | None = None, bias: float = 0.15,
                           study_uid: str | None = None, frame_of_reference_uid: str | None = None,
-                          patient: Mapping[str, str] | None = None, first_series_number: int = 101
+                          patient: Mapping[str, str] | None = None, first_series_number: int = 101,
+                          marker_capsules: Mapping[str, Mapping[str, np.ndarray]] | None = None
                           ) -> tuple[dict[str, ForearmTruth], CapsulePlacement]:
     """Render forearm stacks (one per pose) with oil capsules on the skin, and write them as DICOM.
 
@@ -1570,6 +1589,13 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
     patient : mapping, optional
     first_series_number : int
         Series numbers are consecutive from this.
+    marker_capsules : mapping marker name -> (mapping pose name -> ndarray (3,)), optional
+        Capsules at marker spots, as the paper's protocol marked them (LPS mm,
+        the centre in each pose that shows it: the caller carries them with
+        their bones). Unlike the random ones they sit where their marker is, on
+        a slice plane or not; in a stack whose field of view (a slice's reach)
+        does not wholly hold its sphere it is left out. The random capsules
+        keep their separation from them in the first pose.
 
     Returns
     -------
@@ -1607,9 +1633,19 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
                                          intensity_scale=float(rng.uniform(lo_s, hi_s)))
     names = list(fp)
     first = fp[names[0]]
+    marked: dict[str, dict[str, np.ndarray]] = {}
+    for mname, per_pose in (marker_capsules or {}).items():
+        if not set(per_pose) <= set(names):
+            raise ValueError(f"marker capsule {mname!r} has centres for poses {sorted(set(per_pose) - set(names))} "
+                             f"that are not among {names}")
+        c = {nm: np.asarray(p, float).reshape(3) for nm, p in per_pose.items()}
+        c = {nm: p for nm, p in c.items() if _sphere_in_field(plans[nm], p, capsule_diameter_mm / 2)}
+        if c:
+            marked[mname] = c
     placement = place_capsules(first.skin, n_capsules, rng, diameter_mm=capsule_diameter_mm,
                                plans=[plans[nm] for nm in names], skins=[fp[nm].skin for nm in names],
-                               min_plane_distance_mm=min_plane_distance_mm, region=first.axis)
+                               min_plane_distance_mm=min_plane_distance_mm, region=first.axis,
+                               avoid=np.array([c[names[0]] for c in marked.values() if names[0] in c]).reshape(-1, 3))
     study_uid = study_uid or generate_uid()
     frame_of_reference_uid = frame_of_reference_uid or generate_uid()
     patient = dict(patient or {})
@@ -1617,7 +1653,9 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
     truths = {}
     for name in names:
         pose, plan = fp[name], plans[name]
-        centres = capsule_centres_on(pose.skin, placement)
+        at_markers = {m: c[name] for m, c in marked.items() if name in c}
+        centres = np.vstack([capsule_centres_on(pose.skin, placement),
+                             np.array(list(at_markers.values())).reshape(-1, 3)])
         layers = list(pose.layers) + [(m, "oil") for m in capsule_meshes(centres, placement.radius_mm)]
         img = render_volume(layers, plan.affine, plan.shape, slice_thickness_mm=plan.slice_thickness_mm,
                             inplane_supersample=inplane_supersample,
@@ -1640,5 +1678,6 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
                                   inplane_supersample=inplane_supersample,
                                   through_plane_samples=through_plane_samples)
             labels = Volume(lab, plan.affine.copy(), {"kind": "oracle_labels", "station": plan.name})
-        truths[name] = ForearmTruth(plan=plan, folder=folder, capsule_centres=centres, labels=labels)
+        truths[name] = ForearmTruth(plan=plan, folder=folder, capsule_centres=centres, labels=labels,
+                                    marker_capsules=at_markers)
     return truths, placement
