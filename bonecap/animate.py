@@ -116,12 +116,20 @@ def forearm_models(subject: Subject) -> dict[str, Any]:
     mirrored is nearer than the paper's subject. On the phantom (seed 1, left forearm, no stacks):
     radius_l 11.7 deg with the paper's coefficients, 5.4 deg with the right arm's fit.
     """
+    from dataclasses import replace
+
     from bonecap.motion.forearm import PAPER_MODEL, ForearmModel
 
     fitted = {side: ForearmModel.from_dict(d) for side, d in (subject.forearm or {}).items() if d}
     out = {}
     for side, other in (("r", "l"), ("l", "r")):
-        out[side] = fitted.get(side) or fitted.get(other) or PAPER_MODEL
+        if side in fitted:
+            out[side] = fitted[side]
+        elif other in fitted:
+            # the coefficients are side-free; the radius's axis measured in the other ulna's frame is not
+            out[side] = replace(fitted[other], radius_axis_ulna_mm=())
+        else:
+            out[side] = PAPER_MODEL
     return out
 
 

@@ -58,7 +58,7 @@ from bonecap.motion.paper import minimal_rotation
 from bonecap.parallel import Pending, default_workers, fork_map, fork_or_here, fork_start
 from bonecap.skeleton.kinematics import subtree as _subtree
 
-__all__ = ["MODEL_TO_LPS", "capsules_to_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
+__all__ = ["MODEL_TO_LPS", "capsules_to_markers", "forearm_capsule_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
            "load_seeds", "build_from_mri", "warp_targets", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
            "reframe_subject", "elbow_offsets", "personal_label_meshes", "personal_labels", "label_table"]
 
@@ -1121,7 +1121,8 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
         bar.set_postfix_str("forearm")
         try:
             model, forearm_report = fit_forearm_from_stacks(list(forearm_poses), personal, side=side,
-                                                            markers=subject.markers, registered=registering)
+                                                            markers=subject.markers, registered=registering,
+                                                            skin=skin)
             subject.forearm = {side: model}
         except DataError as exc:
             # the stacks could not be read as three poses of this forearm: the
@@ -2504,9 +2505,117 @@ def _stack_side(path, personal: Skeleton, read=None) -> str:
     return "r" if centre[0] < mid[0] else "l"
 
 
-def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
-                            max_icp_mm: float = 6.0, markers=None, registered: Pending | None = None
+#: The radius's axis measured in the forearm stacks (:func:`~bonecap.motion.forearm.radius_axis_from_poses`)
+#: replaces the ulna's radio-ulnar joint centres unless one of them lies farther than this (mm) from it: then a
+#: stack's registration, not the warp, is the likelier to be wrong.
+RADIUS_AXIS_MAX_OFF_MM = 10.0
+
+#: A capsule in a forearm stack is named for a marker of the forearm when it lies within this distance (mm)
+#: of the marker's bound position carried by the registered bone (the marker 3 mm farther out than its
+#: capsule; the static binding of a wrist marker 5 mm off on phantoms). The random capsules of the phantom's
+#: stacks keep 14 mm from the marker spots.
+FOREARM_CAPSULE_MATCH_MM = 12.0
+
+
+def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin: Mesh | None, *,
+                            max_distance_mm: float = FOREARM_CAPSULE_MATCH_MM,
+                            capsule_radius_mm: float = 4.0, marker_radius_mm: float = 7.0
                             ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The forearm's markers bound from the capsules the forearm stacks show at their spots.
+
+    The paper's protocol marked every marker spot with an oil capsule, in the
+    forearm stacks too, and read the stacks' twist on them. In each stack the
+    markers are expected where their bound positions ride the registered
+    bones (the humerus's, the epicondyles, with the ulna), and the capsules
+    found there are named one to one (:func:`~bonecap.segmentation.capsules.match_capsules`).
+    A marker on the ulna or the radius that got a capsule is bound again from
+    it: the capsule carried back to the MRI pose with its bone's registration,
+    averaged over the stacks that show it, and the marker one
+    marker-minus-capsule radius out along the personal skin's normal
+    (:func:`capsules_to_markers`). The epicondyle markers keep their binding:
+    the humerus is not registered in the stacks, and the elbow's flexion there
+    need not be the whole-body scan's.
+
+    Parameters
+    ----------
+    stacks : sequence of (Ts, capsules)
+        Per stack: each registered bone's pose (bone -> LPS) and the capsule centres found (LPS mm).
+    personal : Skeleton
+        The personal skeleton at the MRI pose (LPS).
+    side : {"r", "l"}
+    markers : mapping of str -> MarkerBinding
+        The subject's markers.
+    skin : Mesh or None
+        The personal skin at the MRI pose (LPS, outward normals), whose normal
+        carries a capsule's centre out to its marker's; without it nothing is bound.
+    max_distance_mm : float
+        :data:`FOREARM_CAPSULE_MATCH_MM`.
+
+    Returns
+    -------
+    bindings : dict of str -> MarkerBinding
+        The markers bound again (source ``"capsule"``).
+    report : dict
+        Per marker: the stacks that showed its capsule, the spread of its carried
+        centres over them (mm) and how far the new binding moved it (mm).
+
+    References
+    ----------
+    .. [1] Kojima et al., sections 4 and 8.2 (capsules at the marker spots; the twist read on them).
+    """
+    from bonecap.motion.forearm import FOREARM_MARKERS
+    from bonecap.segmentation.capsules import match_capsules
+    from bonecap.subject import MarkerBinding
+
+    if side not in FOREARM_MARKERS:
+        raise ValueError(f"side must be 'r' or 'l', got {side!r}")
+    ulna_n = f"ulna_{side}"
+    own = {ulna_n, f"radius_{side}"}
+    names = [n for n, m in markers.items()
+             if m.bone in personal.bones and (m.bone in own or n in FOREARM_MARKERS[side])]
+    carried: dict[str, list[np.ndarray]] = {}
+    report: dict[str, Any] = {}
+    if not names or ulna_n not in personal.bones or skin is None:
+        return {}, report
+    U = personal.bones[ulna_n].bone_to_world
+    for Ts, centres in stacks:
+        centres = np.asarray(centres, float).reshape(-1, 3)
+        if not len(centres) or ulna_n not in Ts:
+            continue
+        moves = {}
+        for n in names:
+            b = markers[n].bone
+            # bone -> its MRI pose's motion into this stack; the humerus's markers ride the ulna
+            moves[n] = (Ts[b] if b in Ts else Ts[ulna_n] @ np.linalg.inv(U) @ personal.bones[b].bone_to_world
+                        ) @ np.linalg.inv(personal.bones[b].bone_to_world)
+        expected = {n: _apply_point(moves[n] @ personal.bones[markers[n].bone].bone_to_world, markers[n].local)
+                    for n in names}
+        for n, c in match_capsules(centres, expected, max_distance_mm=max_distance_mm).items():
+            if markers[n].bone in own and markers[n].bone in Ts:
+                carried.setdefault(n, []).append(_apply_point(np.linalg.inv(moves[n]), c))
+    if not carried:
+        return {}, report
+    mean = {n: np.mean(c, axis=0) for n, c in carried.items()}
+    placed = capsules_to_markers(mean, skin, capsule_radius_mm=capsule_radius_mm, marker_radius_mm=marker_radius_mm)
+    bindings = {}
+    for n, p in placed.items():
+        B = personal.bones[markers[n].bone].bone_to_world
+        local = B[:3, :3].T @ (np.asarray(p, float) - B[:3, 3])
+        bindings[n] = MarkerBinding(n, markers[n].bone, local, "capsule", markers[n].weight)
+        c = np.asarray(carried[n])
+        report[n] = {"stacks": len(c),
+                     "spread_mm": round(float(np.max(np.linalg.norm(c - mean[n], axis=1))), 2),
+                     "moved_mm": round(float(np.linalg.norm(local - markers[n].local)), 2)}
+    return bindings, report
+
+
+def _apply_point(T: np.ndarray, p) -> np.ndarray:
+    return T[:3, :3] @ np.asarray(p, float) + T[:3, 3]
+
+
+def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
+                            max_icp_mm: float = 6.0, markers=None, registered: Pending | None = None,
+                            skin: Mesh | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage 8: the subject's forearm model from three forearm stacks (Kojima et al. §8.2).
 
     For each stack: the humerus, ulna and radius are segmented with the
@@ -2540,11 +2649,16 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         A bone whose registration leaves a larger median residual is not in that stack: error (the
         median: where the stack's segmentation missed part of the bone, the mean grows with what was
         missed, however well the rest fits).
-    markers : mapping of str -> MarkerBinding, optional
-        The subject's markers (bone, position in the bone frame).
+    markers : dict of str -> MarkerBinding, optional
+        The subject's markers (bone, position in the bone frame). Those of the
+        ulna and the radius whose capsules the stacks show are bound again from
+        them, **in this dict** (:func:`forearm_capsule_markers`), before the
+        twists are read.
     registered : Pending, optional
         The stacks' registrations already started (:func:`start_forearm_registration`
         with the same ``dirs``, ``personal``, ``side`` and ``max_icp_mm``).
+    skin : Mesh, optional
+        The personal skin at the MRI pose, for the capsules' markers.
 
     Returns
     -------
@@ -2557,7 +2671,7 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     ----------
     .. [1] Kojima et al., section 8.2.
     """
-    from bonecap.motion.forearm import FOREARM_MARKERS, fit_forearm_model, forearm_twist
+    from bonecap.motion.forearm import FOREARM_MARKERS, fit_forearm_model, forearm_twist, radius_axis_from_poses
 
     if len(dirs) != 3:
         raise InputError(f"--forearm-poses takes three stacks, got {len(dirs)}")
@@ -2573,7 +2687,15 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     poses, report = [], {"stacks": {}, "capsules": {}}
     if registered is None:
         registered = start_forearm_registration(dirs, personal, side, max_icp_mm)
-    for d, (Ts, stack_report, capsules) in zip(dirs, registered.result()):
+    results = registered.result()
+    if use_markers:
+        # the wrist markers read where the stacks' capsules mark them, as the paper read its stacks and as
+        # a trial reads its real markers: the static's binding of the radial styloid marker was 5 mm off on
+        # a phantom, which tilted every stack's wrist line against the trials' (their twists 2.6-4 deg apart)
+        rebound, report["capsule_markers"] = forearm_capsule_markers(
+            [(Ts, caps) for Ts, _, caps in results], personal, side, markers, skin)
+        markers.update(rebound)
+    for d, (Ts, stack_report, capsules) in zip(dirs, results):
         report["stacks"][str(d)] = stack_report
         if use_markers:
             # each marker rides on its bone's registration in this stack; the ones on the humerus
@@ -2603,6 +2725,16 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     # the subject's MRI knows where its radio-ulnar axis is: the radius turns about it rather than
     # about the line through the control points on the skin markers' segments (ForearmModel.radius_axis)
     out["radius_axis"] = "anatomical"
+    # ... and where the stacks show it: the radius's turn relative to the ulna from the 0 degree stack is
+    # about that axis, whose place the warped ulna's joint centres guessed 2-4 mm off on a phantom (a half
+    # turn carried that into 4-8 mm of radius position)
+    if {"proximal_radioulnar", "distal_radioulnar"} <= set(U.joint_centres):
+        guess = np.array([U.joint_centres["proximal_radioulnar"], U.joint_centres["distal_radioulnar"]])
+        ends, report["radius_axis"] = radius_axis_from_poses(
+            np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), guess, ref=int(np.argmin(np.abs(raw))))
+        if ends is not None and max(report["radius_axis"]["guess_off_mm"]) <= RADIUS_AXIS_MAX_OFF_MM:
+            out["radius_axis_ulna_mm"] = ends.ravel().tolist()
+        report["radius_axis"]["used"] = "radius_axis_ulna_mm" in out
     out["side"] = side
     out["fitted_from"] = [str(d) for d in dirs]
     report["twists_deg"] = theta.tolist()

@@ -1378,3 +1378,68 @@ def test_a_skull_turned_off_its_head_is_turned_back_onto_the_head_s_symmetry():
     half = skin[(skin - T_true[:3, 3]) @ W[:, 2] > -10.0]
     A2, rep2 = _skull_onto_symmetry(np.eye(4), T_off, skull_world, half)
     assert not rep2["used"] and np.allclose(A2, np.eye(4))
+
+
+def test_forearm_capsule_markers_rebind_the_forearms_markers_from_its_stacks():
+    """Capsules at the wrist markers' spots in three stacks (the radius turned, the ulna still) bind the
+    markers where the capsules say, whatever the old binding; the humerus's marker keeps its own; a capsule
+    beyond reach or a stray one is not taken."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from bonecap.build_mri import FOREARM_CAPSULE_MATCH_MM, forearm_capsule_markers
+    from bonecap.model import Bone, Mesh, Skeleton
+    from bonecap.subject import MarkerBinding
+
+    def pose(rotvec_deg, t):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+        T[:3, 3] = t
+        return T
+
+    U = pose([0, 0, 10], [0, 0, 0])
+    R = pose([0, 0, -5], [25, 0, 0])
+    H = pose([0, 0, 0], [0, 0, 280])
+    sk = Skeleton({"humerus_r": Bone("humerus_r", None, bone_to_world=H),
+                   "ulna_r": Bone("ulna_r", "humerus_r", bone_to_world=U),
+                   "radius_r": Bone("radius_r", "humerus_r", bone_to_world=R)}, world="lps")
+    # a forearm of skin: a cylinder of radius 30 mm about the z axis, the markers on it
+    skin = trimesh.creation.cylinder(radius=30.0, height=600, sections=128).subdivide_to_size(6.0)
+    skin = Mesh(np.asarray(skin.vertices), np.asarray(skin.faces), "lps")
+    true_world = {"RWRA": np.array([37.0, 0.0, -200.0]), "RWRB": np.array([-37.0, 0.0, -190.0]),
+                  "RELB": np.array([37.0, 0.0, 250.0])}
+    bone_of = {"RWRA": "radius_r", "RWRB": "ulna_r", "RELB": "humerus_r"}
+    caps_mri = {n: p * (34.0 / 37.0) * np.array([1, 1, 0]) + p * np.array([0, 0, 1]) for n, p in true_world.items()}
+
+    def local(n, p):
+        B = sk.bones[bone_of[n]].bone_to_world
+        return B[:3, :3].T @ (p - B[:3, 3])
+
+    # the old binding 6 mm off (RWRA), 4 mm off (RWRB); the humerus's marker 5 mm off
+    markers = {n: MarkerBinding(n, bone_of[n], local(n, p + off), "static")
+               for (n, p), off in zip(true_world.items(), ([0, 6, 0], [0, 0, 4], [0, 5, 0]))}
+    stacks = []
+    for turn in (0.0, 95.0, 170.0):
+        # the radius turns about the z axis through the ulna; the ulna registered 2 mm off-axis in each stack
+        move_u = pose([0, 0, 0], [2, -1, 3])
+        move_r = pose([0, 0, turn], [0, 0, 0]) @ move_u
+        Ts = {"ulna_r": move_u @ U, "radius_r": move_r @ R}
+        caps = [(move_r if bone_of[n] == "radius_r" else move_u)[:3, :3] @ c
+                + (move_r if bone_of[n] == "radius_r" else move_u)[:3, 3] for n, c in caps_mri.items()]
+        caps.append(caps[0] + [0, 0, FOREARM_CAPSULE_MATCH_MM + 30])     # a stray capsule, far from all
+        stacks.append((Ts, np.array(caps)))
+    rebound, report = forearm_capsule_markers(stacks, sk, "r", markers, skin)
+    assert set(rebound) == {"RWRA", "RWRB"}                 # the epicondyle marker rides the humerus
+    for n, b in rebound.items():
+        assert b.source == "capsule" and b.bone == bone_of[n]
+        np.testing.assert_allclose(b.local, local(n, true_world[n]), atol=0.3)
+        assert report[n]["stacks"] == 3 and report[n]["spread_mm"] < 0.01
+    assert report["RWRA"]["moved_mm"] == pytest.approx(6.0, abs=0.3)
+    # the old binding beyond reach: no capsule is named, nothing rebound
+    far = dict(markers, RWRA=MarkerBinding("RWRA", "radius_r", local("RWRA", true_world["RWRA"] + [0, 25, 0])))
+    rebound, _ = forearm_capsule_markers(stacks, sk, "r", far, skin)
+    assert "RWRA" not in rebound and "RWRB" in rebound
+    # without the skin's normals a capsule does not say where its marker is
+    assert forearm_capsule_markers(stacks, sk, "r", markers, None)[0] == {}
+    with pytest.raises(ValueError, match="side"):
+        forearm_capsule_markers(stacks, sk, "x", markers, skin)

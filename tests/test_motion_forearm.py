@@ -15,6 +15,7 @@ from bonecap.motion.forearm import (
     fit_forearm_model,
     forearm_bone_poses,
     forearm_twist,
+    radius_axis_from_poses,
 )
 from bonecap.motion.rigid import rotation_angle_deg
 
@@ -236,3 +237,49 @@ def test_a_side_without_stacks_takes_the_other_sides_fitted_model():
     assert both["l"].radius_rotation == (0.0, 1.0, 0.0) and both["r"].radius_rotation == (-0.2, 1.4, 0.0)
     none = forearm_models(SimpleNamespace(forearm={}))
     assert none["r"] is PAPER_MODEL and none["l"] is PAPER_MODEL
+    # the radius's axis measured in the right ulna's frame is the right arm's alone
+    axis = [1.0, 250.0, 20.0, 5.0, 15.0, 4.0]
+    models = forearm_models(SimpleNamespace(forearm={"r": {**fitted, "radius_axis": "anatomical",
+                                                               "radius_axis_ulna_mm": axis}}))
+    assert models["r"].radius_axis_ulna_mm == tuple(axis) and models["l"].radius_axis_ulna_mm == ()
+    assert models["l"].radius_rotation == models["r"].radius_rotation
+    with pytest.raises(ValueError, match="radius_axis_ulna_mm"):
+        ForearmModel.from_dict({**fitted, "radius_axis_ulna_mm": [1.0, 2.0]})
+
+
+def _screw(point, direction, angle_deg, slide_mm=0.0):
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_rotvec(np.radians(angle_deg) * d).as_matrix()
+    G[:3, 3] = point - G[:3, :3] @ point + slide_mm * d
+    return G
+
+
+def test_radius_axis_from_poses_finds_the_screw_axis():
+    """Radius poses turned about a known line of the ulna's frame (with a slide along it) give that line;
+    its ends are the points nearest the guessed ends; a pose that turned too little places nothing."""
+    rng = np.random.default_rng(2)
+    p0, d = np.array([4.0, 250.0, 19.0]), np.array([0.05, -1.0, -0.06])
+    U = np.array([_screw(rng.normal(size=3) * 50, rng.normal(size=3), a) for a in (0.0, 37.0, -21.0)])
+    R_rest = _screw(np.array([20.0, 100.0, 0.0]), [0.0, 0.0, 1.0], 12.0)      # radius frame in the ulna's
+    rel = [R_rest, _screw(p0, d, 99.5, 0.4) @ R_rest, _screw(p0, d, 172.1, 0.1) @ R_rest]
+    R = np.array([u @ r for u, r in zip(U, rel)])
+    guess = np.array([p0 + [3.0, 0.0, 0.0], p0 + 235 * d / np.linalg.norm(d) + [0.0, 0.0, 3.0]])
+    ends, rep = radius_axis_from_poses(U, R, guess)
+    dn = d / np.linalg.norm(d)
+    for e, q in zip(ends, guess):
+        v = e - p0
+        assert np.linalg.norm(v - (v @ dn) * dn) < 1e-6                # on the true axis
+        assert abs((q - e) @ dn) < 1e-6                                   # nearest the guess
+    assert rep["turn_deg"] == pytest.approx([99.5, 172.1])
+    assert np.abs(rep["slide_mm"]) == pytest.approx([0.4, 0.1], abs=1e-6)
+    assert rep["guess_off_mm"] == pytest.approx([3.0, 3.0], abs=0.05) and max(rep["spread_mm"]) < 1e-6
+    # the reference need not come first; twists under the minimum turn place no axis
+    ends2, _ = radius_axis_from_poses(U[::-1], R[::-1], guess, ref=2)
+    np.testing.assert_allclose(ends2, ends, atol=1e-6)
+    small = np.array([U[0] @ R_rest, U[1] @ _screw(p0, d, 20.0) @ R_rest])
+    assert radius_axis_from_poses(U[:2], small, guess)[0] is None
+    with pytest.raises(ValueError, match="ends_guess"):
+        radius_axis_from_poses(U, R, guess[0])
+    with pytest.raises(ValueError, match="ref"):
+        radius_axis_from_poses(U, R, guess, ref=3)

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["ForearmModel", "PAPER_MODEL", "forearm_twist", "elbow_frame", "forearm_bone_poses",
-           "fit_forearm_model", "forearm_poses_from_markers", "FOREARM_MARKERS"]
+           "fit_forearm_model", "forearm_poses_from_markers", "FOREARM_MARKERS", "radius_axis_from_poses"]
 
 _UNITS = {"quarter_turn": 90.0, "deg": 1.0, "rad": 180.0 / np.pi}
 #: Default marker labels per side: radial styloid, ulnar styloid, lateral and medial epicondyle.
@@ -177,6 +177,13 @@ class ForearmModel:
         ulna's ``proximal_radioulnar`` and ``distal_radioulnar`` joint
         centres, as the MRI placed them), carried with the ulna; ``f(theta)``
         is the same. Falls back to the markers where the ulna lacks them.
+    radius_axis_ulna_mm : tuple of 6 float, or ()
+        With ``radius_axis="anatomical"``: the ends of the line the radius
+        turns about (proximal then distal, x y z each) in the **ulna's bone
+        frame**, mm, as the subject's forearm stacks showed it
+        (:func:`radius_axis_from_poses`); used instead of the ulna's joint
+        centres. Empty: the joint centres. A model borrowed by the other arm
+        drops it (it is one ulna's).
     """
 
     ulna_rotation: tuple
@@ -189,8 +196,12 @@ class ForearmModel:
     theta_range_deg: tuple = (0.0, 180.0)
     theta_zero: str = "reference"
     radius_axis: str = "markers"
+    radius_axis_ulna_mm: tuple = ()
 
     def __post_init__(self):
+        if len(self.radius_axis_ulna_mm) not in (0, 6) or not np.all(np.isfinite(self.radius_axis_ulna_mm)):
+            raise ValueError(f"radius_axis_ulna_mm must be empty or 6 finite numbers (two ends, mm), "
+                             f"got {self.radius_axis_ulna_mm!r}")
         if self.unit not in _UNITS:
             raise ValueError(f"unit must be one of {sorted(_UNITS)}, got {self.unit!r}")
         if self.theta_zero not in ("reference", "anatomical"):
@@ -326,6 +337,83 @@ def _screw_axis(G):
     pts = np.array([np.linalg.lstsq(np.eye(3) - R[k], t[k] - (t[k] @ a[k]) * a[k], rcond=None)[0]
                     if s[k] > 1e-12 else np.zeros(3) for k in range(len(G))])
     return a, ang, pts
+
+
+#: A pose whose radius turned less than this (deg) from the reference pose does not place the radius's axis:
+#: the axis's position error grows as ``1 / sin(angle / 2)`` of the poses' registration error.
+MIN_AXIS_TURN_DEG = 30.0
+
+
+def radius_axis_from_poses(ulna_to_world, radius_to_world, ends_guess, *, ref: int = 0,
+                           min_turn_deg: float = MIN_AXIS_TURN_DEG) -> tuple[np.ndarray | None, dict]:
+    """The line the radius turns about on the ulna, from both bones' poses at several twists.
+
+    The radius's motion relative to the ulna from the reference pose to each
+    other pose is a rotation about a helical axis (:func:`_screw_axis`); in the
+    ulna's frame these axes are the forearm's radio-ulnar axis (radial head
+    to ulnar head, Hollister et al. 1994) as those poses show it. The axes of
+    the poses that turned at least ``min_turn_deg`` are combined with weights
+    ``sin^2(angle / 2)`` (a half turn places its axis best): each end is the
+    weighted mean of the points of the axes nearest the guessed end.
+
+    Parameters
+    ----------
+    ulna_to_world, radius_to_world : array_like (K, 4, 4)
+        Each bone's pose (bone frame -> a common world frame, mm) in each of K poses, e.g. forearm stacks.
+    ends_guess : array_like (2, 3)
+        Proximal and distal ends of the axis as guessed (the ulna's radio-ulnar joint centres), **ulna frame**.
+    ref : int
+        The reference pose (twist 0).
+    min_turn_deg : float
+
+    Returns
+    -------
+    ends : ndarray (2, 3) or None
+        The fitted ends in the ulna's frame (None when no pose turned enough).
+    report : dict
+        Each pose's ``turn_deg`` and ``slide_mm`` (translation along its axis), the guessed ends'
+        distance from the fitted line (``guess_off_mm``) and the spread of the poses' axes at each end
+        (``spread_mm``).
+
+    References
+    ----------
+    .. [1] Hollister AM, Gellman H, Waters RL. The relationship of the interosseous membrane to the axis
+       of rotation of the forearm. Clin Orthop Relat Res 298:267-271, 1994.
+    """
+    U = np.asarray(ulna_to_world, float)
+    R = np.asarray(radius_to_world, float)
+    guess = np.asarray(ends_guess, float)
+    if U.ndim != 3 or U.shape[1:] != (4, 4) or R.shape != U.shape:
+        raise ValueError(f"ulna_to_world and radius_to_world must both be (K, 4, 4), got {U.shape} and {R.shape}")
+    if guess.shape != (2, 3):
+        raise ValueError(f"ends_guess must be (2, 3) (proximal, distal; ulna frame, mm), got {guess.shape}")
+    if not 0 <= ref < len(U):
+        raise ValueError(f"ref must index one of the {len(U)} poses, got {ref}")
+    rel = np.linalg.inv(U) @ R                       # radius -> ulna frame, per pose
+    others = [k for k in range(len(U)) if k != ref]
+    report: dict = {"turn_deg": [], "slide_mm": []}
+    if not others:
+        return None, report
+    G = rel[others] @ np.linalg.inv(rel[ref])
+    a, ang, pts = _screw_axis(G)
+    slide = np.einsum("ki,ki->k", G[:, :3, 3], a)
+    report["turn_deg"], report["slide_mm"] = ang.tolist(), slide.tolist()
+    keep = ang >= float(min_turn_deg)
+    if not keep.any():
+        return None, report
+    a, pts, w = a[keep], pts[keep], np.sin(np.radians(ang[keep]) / 2) ** 2
+    d_guess = guess[1] - guess[0]
+    a = a * np.sign(a @ d_guess)[:, None]            # every axis pointing proximal -> distal
+    ends, spread = [], []
+    for q in guess:
+        on = pts + np.einsum("ki,ki->k", q - pts, a)[:, None] * a      # each axis's point nearest q
+        ends.append(np.average(on, axis=0, weights=w))
+        spread.append(float(np.max(np.linalg.norm(on - ends[-1], axis=1))))
+    ends = np.array(ends)
+    d = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    off = [float(np.linalg.norm((q - ends[0]) - ((q - ends[0]) @ d) * d)) for q in guess]
+    report.update(guess_off_mm=off, spread_mm=spread)
+    return ends, report
 
 
 def _closest_on_segment_line(p, a, m0, m1):
@@ -527,9 +615,16 @@ def forearm_poses_from_markers(skeleton, forearm, labels: Sequence[str], marker_
         poses = forearm_bone_poses(model, theta, carry @ U_ref,
                                    carry_r @ skeleton.bones[radius].bone_to_world, m[:, :2], m[:, 2:], side=side)
         ub = skeleton.bones[ulna]
-        if model.radius_axis == "anatomical" and {"proximal_radioulnar", "distal_radioulnar"} <= set(ub.joint_centres):
-            # the radius turns about the subject's radio-ulnar axis, carried with the ulna
-            ends = np.array([ub.landmark_in_world("proximal_radioulnar"), ub.landmark_in_world("distal_radioulnar")])
+        if model.radius_axis == "anatomical" and (len(model.radius_axis_ulna_mm) == 6 or {
+                "proximal_radioulnar", "distal_radioulnar"} <= set(ub.joint_centres)):
+            # the radius turns about the subject's radio-ulnar axis (as its stacks showed it, else the
+            # ulna's joint centres), carried with the ulna
+            if len(model.radius_axis_ulna_mm) == 6:
+                local = np.reshape(model.radius_axis_ulna_mm, (2, 3))
+                ends = local @ ub.bone_to_world[:3, :3].T + ub.bone_to_world[:3, 3]
+            else:
+                ends = np.array([ub.landmark_in_world("proximal_radioulnar"),
+                                 ub.landmark_in_world("distal_radioulnar")])
             pe = np.einsum("fij,j->fi", carry_r[:, :3, :3], ends[0]) + carry_r[:, :3, 3]
             pw = np.einsum("fij,j->fi", carry_r[:, :3, :3], ends[1]) + carry_r[:, :3, 3]
             d = _unit(pe - pw) if side == "r" else _unit(pw - pe)
