@@ -1766,8 +1766,9 @@ def reframe_subject(subject, frames: dict[str, np.ndarray]) -> None:
     """Describe bones of a subject in new frames, in place; nothing moves in world.
 
     Each bone's meshes, landmarks and joints (:func:`bonecap.skeleton.isb.reframe_bone`), the markers
-    bound to it and its solved static pose (``subject.static["bone_to_lab"]``) are re-expressed in
-    ``frames[bone]`` (bone-to-world, the skeleton's world frame).
+    bound to it, its solved static pose (``subject.static["bone_to_lab"]``) and, for an ulna, the radius's
+    axis of a fitted forearm model (``radius_axis_ulna_mm``) are re-expressed in ``frames[bone]``
+    (bone-to-world, the skeleton's world frame).
     """
     from bonecap.skeleton.isb import reframe_bone
     from bonecap.subject import MarkerBinding
@@ -1784,6 +1785,11 @@ def reframe_subject(subject, frames: dict[str, np.ndarray]) -> None:
         static = (subject.static or {}).get("bone_to_lab") or {}
         if b in static:
             static[b] = np.asarray(static[b], float) @ np.linalg.inv(C)
+        for side, model in (subject.forearm or {}).items():
+            # the radius's axis the forearm stacks measured is held in the ulna's frame
+            if b == f"ulna_{side}" and len(model.get("radius_axis_ulna_mm") or ()) == 6:
+                ends = np.reshape(model["radius_axis_ulna_mm"], (2, 3)) @ C[:3, :3].T + C[:3, 3]
+                model["radius_axis_ulna_mm"] = ends.ravel().tolist()
         sk.bones[b] = reframe_bone(sk.bones[b], T_new)
 
 
@@ -2512,9 +2518,18 @@ RADIUS_AXIS_MAX_OFF_MM = 10.0
 
 #: A capsule in a forearm stack is named for a marker of the forearm when it lies within this distance (mm)
 #: of the marker's bound position carried by the registered bone (the marker 3 mm farther out than its
-#: capsule; the static binding of a wrist marker 5 mm off on phantoms). The random capsules of the phantom's
-#: stacks keep 14 mm from the marker spots.
+#: capsule; the static binding of a wrist marker 5 mm off on phantoms). The one-to-one assignment keeps a
+#: marker from taking another's capsule; a capsule elsewhere on the forearm (the phantom's other capsules
+#: keep 14 mm from the marker spots) within reach of a marker whose own is not in the stack can still be taken,
+#: which the checks below (:data:`FOREARM_CAPSULE_SKIN_MM`, :data:`FOREARM_CAPSULE_SPREAD_MM`) are for.
 FOREARM_CAPSULE_MATCH_MM = 12.0
+#: A stack's capsule, carried back to the MRI pose with its bone, is used while its centre lies within this
+#: distance (mm) of one capsule radius off the personal skin: a capsule lies on the skin, and the skin does
+#: not follow the bone through a half turn (on the phantom it is 5-12 mm off the bone-carried spot at 172 deg).
+FOREARM_CAPSULE_SKIN_MM = 3.0
+#: A marker is bound from its stacks' capsules only while their centres, carried back to the MRI pose, lie
+#: within this distance (mm) of their mean: the stacks' registrations (0.6-1.5 mm ICP residuals) agree that far.
+FOREARM_CAPSULE_SPREAD_MM = 4.0
 
 
 def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin: Mesh | None, *,
@@ -2529,8 +2544,10 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     bones (the humerus's, the epicondyles, with the ulna), and the capsules
     found there are named one to one (:func:`~bonecap.segmentation.capsules.match_capsules`).
     A marker on the ulna or the radius that got a capsule is bound again from
-    it: the capsule carried back to the MRI pose with its bone's registration,
-    averaged over the stacks that show it, and the marker one
+    it: the capsule carried back to the MRI pose with its bone's registration
+    (kept where it lies on the personal skin there, :data:`FOREARM_CAPSULE_SKIN_MM`),
+    averaged over the stacks that show it (while they agree,
+    :data:`FOREARM_CAPSULE_SPREAD_MM`), and the marker one
     marker-minus-capsule radius out along the personal skin's normal
     (:func:`capsules_to_markers`). The epicondyle markers keep their binding:
     the humerus is not registered in the stacks, and the elbow's flexion there
@@ -2556,8 +2573,10 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     bindings : dict of str -> MarkerBinding
         The markers bound again (source ``"capsule"``).
     report : dict
-        Per marker: the stacks that showed its capsule, the spread of its carried
-        centres over them (mm) and how far the new binding moved it (mm).
+        Per marker: the stacks that showed its capsule (``stacks``), those whose
+        capsule was off the skin (``off_skin``), the spread of the carried
+        centres (mm), how far the new binding moved it (``moved_mm``) or why it
+        was not bound (``not_bound``).
 
     References
     ----------
@@ -2577,6 +2596,10 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     report: dict[str, Any] = {}
     if not names or ulna_n not in personal.bones or skin is None:
         return {}, report
+    import trimesh
+
+    skin_tm = trimesh.Trimesh(skin.vertices, skin.faces, process=False)
+    off_skin: dict[str, int] = {}
     U = personal.bones[ulna_n].bone_to_world
     for Ts, centres in stacks:
         centres = np.asarray(centres, float).reshape(-1, 3)
@@ -2592,19 +2615,29 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
                     for n in names}
         for n, c in match_capsules(centres, expected, max_distance_mm=max_distance_mm).items():
             if markers[n].bone in own and markers[n].bone in Ts:
-                carried.setdefault(n, []).append(_apply_point(np.linalg.inv(moves[n]), c))
-    if not carried:
-        return {}, report
+                back = _apply_point(np.linalg.inv(moves[n]), c)
+                if abs(float(skin_tm.nearest.on_surface(back[None])[1][0]) - capsule_radius_mm) \
+                        > FOREARM_CAPSULE_SKIN_MM:
+                    off_skin[n] = off_skin.get(n, 0) + 1
+                    continue
+                carried.setdefault(n, []).append(back)
+    for n, k in off_skin.items():
+        report[n] = {"stacks": 0, "off_skin": k, "not_bound": "its capsules lie off the skin at the MRI pose"}
     mean = {n: np.mean(c, axis=0) for n, c in carried.items()}
+    spread = {n: float(np.max(np.linalg.norm(np.asarray(carried[n]) - mean[n], axis=1))) for n in mean}
+    for n in [n for n in mean if spread[n] > FOREARM_CAPSULE_SPREAD_MM]:
+        report[n] = {"stacks": len(carried[n]), "off_skin": off_skin.get(n, 0), "spread_mm": round(spread[n], 2),
+                     "not_bound": "the stacks disagree"}
+        del mean[n]
+    if not mean:
+        return {}, report
     placed = capsules_to_markers(mean, skin, capsule_radius_mm=capsule_radius_mm, marker_radius_mm=marker_radius_mm)
     bindings = {}
     for n, p in placed.items():
         B = personal.bones[markers[n].bone].bone_to_world
         local = B[:3, :3].T @ (np.asarray(p, float) - B[:3, 3])
         bindings[n] = MarkerBinding(n, markers[n].bone, local, "capsule", markers[n].weight)
-        c = np.asarray(carried[n])
-        report[n] = {"stacks": len(c),
-                     "spread_mm": round(float(np.max(np.linalg.norm(c - mean[n], axis=1))), 2),
+        report[n] = {"stacks": len(carried[n]), "off_skin": off_skin.get(n, 0), "spread_mm": round(spread[n], 2),
                      "moved_mm": round(float(np.linalg.norm(local - markers[n].local)), 2)}
     return bindings, report
 
@@ -2689,12 +2722,15 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         registered = start_forearm_registration(dirs, personal, side, max_icp_mm)
     results = registered.result()
     if use_markers:
-        # the wrist markers read where the stacks' capsules mark them, as the paper read its stacks and as
-        # a trial reads its real markers: the static's binding of the radial styloid marker was 5 mm off on
-        # a phantom, which tilted every stack's wrist line against the trials' (their twists 2.6-4 deg apart)
+        # the ulna's and the radius's markers bound where the stacks' capsules mark them, so the stacks'
+        # twist is read on the wrist markers' own spots, as the paper read its stacks and as a trial reads
+        # its real markers: the static's binding of the radial styloid marker was 5 mm off on a phantom,
+        # which tilted every stack's wrist line against the trials' (their twists 2.6-4 deg apart). The
+        # static's solved pose (subject.static) keeps the bindings it was solved with.
         rebound, report["capsule_markers"] = forearm_capsule_markers(
             [(Ts, caps) for Ts, _, caps in results], personal, side, markers, skin)
         markers.update(rebound)
+        report["rebound_after_static"] = sorted(rebound)
     for d, (Ts, stack_report, capsules) in zip(dirs, results):
         report["stacks"][str(d)] = stack_report
         if use_markers:

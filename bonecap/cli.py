@@ -163,7 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=["tiny", "default"], default="default",
                    help="tiny: a few coarse stations and short trials (for tests); default: the full subject")
     p.add_argument("--marker-capsules", action="store_true",
-                   help="image an 8 mm oil capsule under every trial marker in the stations (the paper's protocol)")
+                   help="image an 8 mm oil capsule under every trial marker in the stations and under the "
+                        "forearm's markers in the forearm stacks (the paper's protocol)")
     p.set_defaults(handler=_cmd_phantom)
 
     p = sub.add_parser(

@@ -21,6 +21,9 @@ Mapping between the files and our objects
 - ``forearm``: the pronation model per side (see
   :mod:`bonecap.motion.forearm`), or absent for the paper's defaults (a side
   without one takes the other side's: :func:`bonecap.animate.forearm_models`).
+  Its ``radius_axis_ulna_mm``, the radius's axis as the forearm stacks showed
+  it, is the one entry of the file **not in world**: it is in the ulna's bone
+  frame (the model carries it with the solved ulna).
 - ``provenance``: the command, inputs, template, marker set and parameters.
 
 ``SUBJECT_DIR/meshes/<bone>.ply`` (and ``<bone>_inner.ply``, ``skin.ply``)

@@ -1439,6 +1439,20 @@ def test_forearm_capsule_markers_rebind_the_forearms_markers_from_its_stacks():
     far = dict(markers, RWRA=MarkerBinding("RWRA", "radius_r", local("RWRA", true_world["RWRA"] + [0, 25, 0])))
     rebound, _ = forearm_capsule_markers(stacks, sk, "r", far, skin)
     assert "RWRA" not in rebound and "RWRB" in rebound
+    # a stack whose capsule lies off the skin once carried back (the skin slid over the bone) is not used;
+    # stacks that disagree bind nothing
+    def moved_cap(k, shift):
+        st = [(Ts, caps.copy()) for Ts, caps in stacks]
+        st[k][1][0] = st[k][1][0] + shift
+        return st
+    Ts2 = stacks[2][0]
+    out_of_skin = Ts2["radius_r"][:3, :3] @ (R[:3, :3].T @ np.array([6.0, 0.0, 0.0]))   # radially out at turn 170
+    rebound, report = forearm_capsule_markers(moved_cap(2, out_of_skin), sk, "r", markers, skin)
+    assert report["RWRA"]["off_skin"] == 1 and report["RWRA"]["stacks"] == 2
+    np.testing.assert_allclose(rebound["RWRA"].local, local("RWRA", true_world["RWRA"]), atol=0.3)
+    along = Ts2["radius_r"][:3, :3] @ (R[:3, :3].T @ np.array([0.0, 0.0, 9.0]))          # along the forearm
+    rebound, report = forearm_capsule_markers(moved_cap(2, along), sk, "r", markers, skin)
+    assert "RWRA" not in rebound and report["RWRA"]["not_bound"] == "the stacks disagree"
     # without the skin's normals a capsule does not say where its marker is
     assert forearm_capsule_markers(stacks, sk, "r", markers, None)[0] == {}
     with pytest.raises(ValueError, match="side"):

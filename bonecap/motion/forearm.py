@@ -199,7 +199,10 @@ class ForearmModel:
     radius_axis_ulna_mm: tuple = ()
 
     def __post_init__(self):
-        if len(self.radius_axis_ulna_mm) not in (0, 6) or not np.all(np.isfinite(self.radius_axis_ulna_mm)):
+        if self.radius_axis_ulna_mm is None:
+            object.__setattr__(self, "radius_axis_ulna_mm", ())
+        if not isinstance(self.radius_axis_ulna_mm, (tuple, list)) or len(self.radius_axis_ulna_mm) not in (0, 6) \
+                or not np.all(np.isfinite(np.asarray(self.radius_axis_ulna_mm, float))):
             raise ValueError(f"radius_axis_ulna_mm must be empty or 6 finite numbers (two ends, mm), "
                              f"got {self.radius_axis_ulna_mm!r}")
         if self.unit not in _UNITS:
@@ -216,7 +219,10 @@ class ForearmModel:
         """Plain lists, for ``subject.yaml``."""
         from dataclasses import asdict
 
-        return {k: (list(map(float, v)) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        # an empty radius axis is left out: a subject file without a measured axis stays readable by
+        # versions that do not know the key
+        return {k: (list(map(float, v)) if isinstance(v, tuple) else v) for k, v in asdict(self).items()
+                if not (k == "radius_axis_ulna_mm" and not v)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ForearmModel":

@@ -141,7 +141,8 @@ def _forearm_marker_capsules(marker_set, skeleton, skin: Mesh, side: str, capsul
     The paper marked its marker spots with capsules in the forearm stacks as in
     the whole body; its twist was read on them. The markers of the forearm are
     those bound to the ulna or the radius and the elbow line's two epicondyle
-    markers (:data:`bonecap.motion.forearm.FOREARM_MARKERS`). Each is placed as
+    markers (:data:`bonecap.motion.forearm.FOREARM_MARKERS`; the medial one
+    lies beyond the stacks' field of view on the phantoms made so far). Each is placed as
     the trials place it (:func:`~bonecap.phantom.trials.place_phantom_markers`,
     on ``skin``: the forearm's part of the reference skin is enough, the rays
     and nearest points being local), and its capsule touches the skin at the
@@ -222,7 +223,9 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         ``tiny``: a few coarse stations and short trials, for the tests.
     marker_capsules : bool
         Image an oil capsule (8 mm) on the skin under every trial marker in
-        the whole-body stations, as the paper's protocol did (the capsules
+        the whole-body stations and under the forearm's markers in the forearm
+        stacks (carried there with their bones; ``truth/forearm.json``'s
+        ``marker_capsules_lps``), as the paper's protocol did (the capsules
         mark the spots the motion-capture markers are later stuck on). Each
         capsule touches the skin at the marker's contact point, its centre one
         capsule radius out along the skin normal (the marker's is one marker
@@ -350,9 +353,12 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         if crop is None:
             crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
                                   L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]
-            # the forearm's markers where the trials place them, on the skin of the first (reference) twist
-            at_ref = _forearm_marker_capsules(marker_set, skeleton, _keep_faces(subject.skin, crop[0]), "r")
-        # Each carried with its marker's bone, as the trials carry the marker. The phantom's skin winds
+            # the paper's protocol marks the forearm markers' spots in the forearm stacks too: where the
+            # trials place the markers, on the skin of the first (reference) twist
+            at_ref = _forearm_marker_capsules(marker_set, skeleton, _keep_faces(subject.skin, crop[0]), "r") \
+                if marker_capsules else {}
+        # Each carried with its marker's bone, as the trials carry the marker (its rigid part: the trials'
+        # soft-tissue artefact is not applied to the capsules, so they are the truth's). The phantom's skin winds
         # with the radius about the radio-ulnar axis (pose_forearm) while a marker rides its bone: where the
         # two part (the ulnar styloid's spot is 12 mm under the wound skin at 172 deg, the dorsal forearm's
         # 5 mm), the capsule would be buried in the tissue or float off it, and this stack does not show it.
@@ -524,7 +530,7 @@ the C3D trials for the motion truth.
 | `labels/merged.nii.gz` | bone labels of the unmoved truth on one common grid |
 | `labels/forearm_<twist>_oracle.nii.gz` | oracle labels of the posed radius and hand bones (and the ulna) on each forearm stack's grid |
 | `stations.json` | per station: the nominal `affine_voxel_to_lps` written in its DICOM header, `shape`, `slice_thickness_mm`, `true_to_nominal` (4x4, `p_nominal = T @ p_true`: where a point of the true body lay during that station; the body was imaged moved by it), `shift_mm`, `rotation_deg`, `intensity_scale` |
-| `forearm.json` | per forearm twist: `theta_deg`, `radioulnar_axis_lps` (radial-head end, ulnar-head end), `bone_to_lps` of the bones that moved, `capsule_centres_lps` (all the stack's capsules: the random ones, then those at the forearm markers' spots), `marker_capsules_lps` (marker name -> the centre of the capsule at its spot: the markers on the ulna and the radius and the two epicondyle markers, carried with their bones; 3 mm nearer the skin than the trial's marker), the stack's geometry; `capsule_radius_mm` |
+| `forearm.json` | per forearm twist: `theta_deg`, `radioulnar_axis_lps` (radial-head end, ulnar-head end), `bone_to_lps` of the bones that moved, `capsule_centres_lps` (all the stack's capsules: the random ones, then those at the forearm markers' spots), `marker_capsules_lps` (with `--marker-capsules`: marker name -> the centre of the capsule at its spot, for the markers on the ulna and the radius and the epicondyle markers the stack shows, carried with their bones; 3 mm nearer the skin than the trial's marker; left out where the wound skin would bury it), the stack's geometry; `capsule_radius_mm` |
 | `skeleton.json` | the true skeleton at the MRI pose: per bone `parent`, `bone_to_lps`, `joint_centres_lps`, `landmarks_lps` |
 | `subject.json` | seed, template, preset and every drawn parameter (stature, segment scales, femoral anteversion and neck angle, bowing, pelvis width, body shape) |
 | `marker_binding.yaml` | the true marker -> bone binding: bone, position in the bone frame (mm), placement, soft-tissue-artefact class |

@@ -1271,9 +1271,10 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
     region_radius_mm : float
     max_tries : int
         Rounds of candidate draws before giving up.
-    avoid : ndarray (m, 3), optional
-        Centres of capsules placed otherwise (on ``skin_mesh``'s pose, e.g. at
-        marker spots): the new ones keep ``min_separation_mm`` from them too.
+    avoid : sequence of ndarray (m_k, 3), optional
+        Centres of capsules placed otherwise (e.g. at marker spots), one array
+        per plan and skin (``skin_mesh``'s pose without plans): the new ones
+        keep ``min_separation_mm`` from them in every pose.
 
     Returns
     -------
@@ -1326,7 +1327,9 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
     chosen_f: list[int] = []
     chosen_b: list[np.ndarray] = []
     chosen_c: list[np.ndarray] = []
-    avoid = np.zeros((0, 3)) if avoid is None else np.asarray(avoid, float).reshape(-1, 3)
+    avoid = [np.asarray(a, float).reshape(-1, 3) for a in (avoid or [])]
+    if avoid and len(avoid) != max(len(plans), 1):
+        raise ValueError(f"avoid needs one array per pose ({max(len(plans), 1)}), got {len(avoid)}")
     tries = 0
     while len(chosen_f) < n:
         tries += 1
@@ -1340,13 +1343,16 @@ def place_capsules(skin_mesh: Mesh, n: int, rng: np.random.Generator | int | Non
         bary = np.stack([1 - a - b, a, b], axis=1)
         cand = CapsulePlacement(f, bary, np.zeros((m, 3)), r)
         ok = np.ones(m, bool)
-        for p, sk in zip(plans, skins):
-            ok &= _plane_distance_mm(p, capsule_centres_on(sk, cand)) >= min_plane_distance_mm
+        posed = [capsule_centres_on(sk, cand) for sk in skins] or [capsule_centres_on(skin_mesh, cand)]
+        for p, c_k in zip(plans, posed):
+            ok &= _plane_distance_mm(p, c_k) >= min_plane_distance_mm
+        for a, c_k in zip(avoid, posed):
+            if len(a):
+                ok &= np.min(np.linalg.norm(c_k[:, None] - a[None], axis=2), axis=1) >= sep
         centres = capsule_centres_on(skin_mesh, cand)
         for idx in np.nonzero(ok)[0]:
             c = centres[idx]
-            taken = np.vstack([avoid, np.asarray(chosen_c).reshape(-1, 3)])
-            if len(taken) and np.min(np.linalg.norm(taken - c, axis=1)) < sep:
+            if chosen_c and np.min(np.linalg.norm(np.asarray(chosen_c) - c, axis=1)) < sep:
                 continue
             chosen_f.append(int(f[idx]))
             chosen_b.append(bary[idx])
@@ -1445,7 +1451,8 @@ FOREARM_EXTEND_MM = 10.0
 def plan_forearm_stack(skin: Mesh, axis: np.ndarray, *, name: str = "forearm", index: int = 100,
                        pixel_mm: float = 0.7, pitch_mm: float = 2.5, thickness_mm: float = 2.5,
                        margin_mm: float = 12.0, extend_mm: float = FOREARM_EXTEND_MM, max_radius_mm: float = 80.0,
-                       intensity_scale: float = 1.0) -> StationPlan:
+                       intensity_scale: float = 1.0, cover: np.ndarray | None = None,
+                       cover_radius_mm: float = CAPSULE_DIAMETER_MM / 2) -> StationPlan:
     """A stack of slices perpendicular to the forearm axis covering the forearm.
 
     Parameters
@@ -1467,6 +1474,12 @@ def plan_forearm_stack(skin: Mesh, axis: np.ndarray, *, name: str = "forearm", i
         Slices extend this far beyond the elbow and wrist points.
     max_radius_mm : float
     intensity_scale : float
+    cover : ndarray (m, 3), optional
+        Centres of spheres (radius ``cover_radius_mm``) the stack must hold
+        whole, slices' reach included: the capsules at the wrist and elbow
+        markers' spots, as the paper's stacks held them (the styloid markers lie
+        at the wrist's level, a few millimetres from the end ``extend_mm`` gives).
+    cover_radius_mm : float
 
     Returns
     -------
@@ -1505,9 +1518,17 @@ def plan_forearm_stack(skin: Mesh, axis: np.ndarray, *, name: str = "forearm", i
     a, b = radial[sel] @ e1, radial[sel] @ e2
     lo = np.array([a.min(), b.min()]) - margin_mm
     hi = np.array([a.max(), b.max()]) + margin_mm
+    s0, s1 = -extend_mm, L + extend_mm
+    if cover is not None and len(cover):
+        c_rel = np.asarray(cover, float).reshape(-1, 3) - axis[0]
+        c_s = c_rel @ nvec
+        reach = float(cover_radius_mm) + pitch_mm           # whole, and a slice beyond
+        s0, s1 = min(s0, float(c_s.min()) - reach), max(s1, float(c_s.max()) + reach)
+        c_ab = np.stack([c_rel @ e1, c_rel @ e2], axis=1)
+        lo = np.minimum(lo, c_ab.min(axis=0) - reach)
+        hi = np.maximum(hi, c_ab.max(axis=0) + reach)
     IJ = [int(math.ceil((h - l) / pixel_mm)) for l, h in zip(lo, hi)]
     IJ = [m + (m % 2) for m in IJ]
-    s0, s1 = -extend_mm, L + extend_mm
     K = int(math.ceil((s1 - s0) / pitch_mm)) + 1
     c_ab = (lo + hi) / 2
     centre_s = (s0 + s1) / 2
@@ -1593,9 +1614,9 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
         Capsules at marker spots, as the paper's protocol marked them (LPS mm,
         the centre in each pose that shows it: the caller carries them with
         their bones). Unlike the random ones they sit where their marker is, on
-        a slice plane or not; in a stack whose field of view (a slice's reach)
-        does not wholly hold its sphere it is left out. The random capsules
-        keep their separation from them in the first pose.
+        a slice plane or not, and each stack is planned to hold them whole
+        (:func:`plan_forearm_stack`'s ``cover``). The random capsules keep
+        their separation from them in every pose.
 
     Returns
     -------
@@ -1624,13 +1645,6 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
             if axis is None:
                 raise ValueError(f"pose {name!r} is a plain layer list: give axis=")
             fp[str(name)] = ForearmPose(layers=list(pose), axis=np.asarray(axis, float))
-    lo_s, hi_s = scale_range
-    plans = {}
-    for n_, (name, pose) in enumerate(fp.items()):
-        plans[name] = plan_forearm_stack(pose.skin, pose.axis, name=f"forearm_{name}",
-                                         index=first_series_number + n_, pixel_mm=pixel_mm, pitch_mm=pitch_mm,
-                                         thickness_mm=thickness_mm, margin_mm=max(12.0, capsule_diameter_mm + 4),
-                                         intensity_scale=float(rng.uniform(lo_s, hi_s)))
     names = list(fp)
     first = fp[names[0]]
     marked: dict[str, dict[str, np.ndarray]] = {}
@@ -1638,14 +1652,25 @@ def render_forearm_stacks(poses: Mapping[str, ForearmPose | Sequence[tuple[Mesh,
         if not set(per_pose) <= set(names):
             raise ValueError(f"marker capsule {mname!r} has centres for poses {sorted(set(per_pose) - set(names))} "
                              f"that are not among {names}")
-        c = {nm: np.asarray(p, float).reshape(3) for nm, p in per_pose.items()}
-        c = {nm: p for nm, p in c.items() if _sphere_in_field(plans[nm], p, capsule_diameter_mm / 2)}
-        if c:
-            marked[mname] = c
+        marked[mname] = {nm: np.asarray(p, float).reshape(3) for nm, p in per_pose.items()}
+    at_pose = {nm: np.array([c[nm] for c in marked.values() if nm in c]).reshape(-1, 3) for nm in names}
+    lo_s, hi_s = scale_range
+    plans = {}
+    for n_, (name, pose) in enumerate(fp.items()):
+        plans[name] = plan_forearm_stack(pose.skin, pose.axis, name=f"forearm_{name}",
+                                         index=first_series_number + n_, pixel_mm=pixel_mm, pitch_mm=pitch_mm,
+                                         thickness_mm=thickness_mm, margin_mm=max(12.0, capsule_diameter_mm + 4),
+                                         intensity_scale=float(rng.uniform(lo_s, hi_s)),
+                                         cover=at_pose[name], cover_radius_mm=capsule_diameter_mm / 2)
+    # (a plan holds its marker capsules whole unless they lie beyond max_radius_mm of the axis)
+    marked = {m: {nm: p for nm, p in c.items() if _sphere_in_field(plans[nm], p, capsule_diameter_mm / 2)}
+              for m, c in marked.items()}
+    marked = {m: c for m, c in marked.items() if c}
     placement = place_capsules(first.skin, n_capsules, rng, diameter_mm=capsule_diameter_mm,
                                plans=[plans[nm] for nm in names], skins=[fp[nm].skin for nm in names],
                                min_plane_distance_mm=min_plane_distance_mm, region=first.axis,
-                               avoid=np.array([c[names[0]] for c in marked.values() if names[0] in c]).reshape(-1, 3))
+                               avoid=[np.array([c[nm] for c in marked.values() if nm in c]).reshape(-1, 3)
+                                      for nm in names])
     study_uid = study_uid or generate_uid()
     frame_of_reference_uid = frame_of_reference_uid or generate_uid()
     patient = dict(patient or {})
