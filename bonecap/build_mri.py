@@ -2523,10 +2523,12 @@ RADIUS_AXIS_MAX_OFF_MM = 10.0
 #: keep 14 mm from the marker spots) within reach of a marker whose own is not in the stack can still be taken,
 #: which the checks below (:data:`FOREARM_CAPSULE_SKIN_MM`, :data:`FOREARM_CAPSULE_SPREAD_MM`) are for.
 FOREARM_CAPSULE_MATCH_MM = 12.0
-#: A stack's capsule, carried back to the MRI pose with its bone, is used while its centre lies within this
-#: distance (mm) of one capsule radius off the personal skin: a capsule lies on the skin, and the skin does
-#: not follow the bone through a half turn (on the phantom it is 5-12 mm off the bone-carried spot at 172 deg).
-FOREARM_CAPSULE_SKIN_MM = 3.0
+#: A stack's capsule, carried back to the MRI pose with its bone, is used while its centre lies between
+#: ``FOREARM_CAPSULE_SKIN_MM[0]`` mm inside the personal skin and ``[1]`` mm outside it: a capsule lies on the
+#: skin (centre one radius, 4 mm, out), and the skin does not follow the bone through a half turn (on the
+#: phantom it is 5-12 mm off the bone-carried spot at 172 deg). Inside, because where the whole-body stations
+#: show capsules too the personal skin holds their bumps (the capsule's own centre up to a radius inside).
+FOREARM_CAPSULE_SKIN_MM = (6.0, 7.0)
 #: A marker is bound from its stacks' capsules only while their centres, carried back to the MRI pose, lie
 #: within this distance (mm) of their mean: the stacks' registrations (0.6-1.5 mm ICP residuals) agree that far.
 FOREARM_CAPSULE_SPREAD_MM = 4.0
@@ -2543,9 +2545,9 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     markers are expected where their bound positions ride the registered
     bones (the humerus's, the epicondyles, with the ulna), and the capsules
     found there are named one to one (:func:`~bonecap.segmentation.capsules.match_capsules`).
-    A marker on the ulna or the radius that got a capsule is bound again from
-    it: the capsule carried back to the MRI pose with its bone's registration
-    (kept where it lies on the personal skin there, :data:`FOREARM_CAPSULE_SKIN_MM`),
+    A marker on the ulna or the radius that got a capsule, and that no capsule of
+    the whole-body stations bound already, is bound again from it: the capsule carried back to the MRI pose with its bone's registration
+    (kept where it lies on the personal skin there, within :data:`FOREARM_CAPSULE_SKIN_MM`),
     averaged over the stacks that show it (while they agree,
     :data:`FOREARM_CAPSULE_SPREAD_MM`), and the marker one
     marker-minus-capsule radius out along the personal skin's normal
@@ -2614,10 +2616,14 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
         expected = {n: _apply_point(moves[n] @ personal.bones[markers[n].bone].bone_to_world, markers[n].local)
                     for n in names}
         for n, c in match_capsules(centres, expected, max_distance_mm=max_distance_mm).items():
-            if markers[n].bone in own and markers[n].bone in Ts:
+            # a marker the whole-body stations' capsules bound keeps that binding: measured at the MRI pose
+            # itself, it needs no registration (seed 2 of the capsule protocol: its RWRA 1.9 mm from the
+            # truth so, 2.6 mm bound again from the stacks, the radius 1.8 -> 3.2 deg in the trials)
+            if markers[n].bone in own and markers[n].bone in Ts and markers[n].source != "capsule":
                 back = _apply_point(np.linalg.inv(moves[n]), c)
-                if abs(float(skin_tm.nearest.on_surface(back[None])[1][0]) - capsule_radius_mm) \
-                        > FOREARM_CAPSULE_SKIN_MM:
+                q, _, tri = skin_tm.nearest.on_surface(back[None])
+                height = float((back - q[0]) @ skin_tm.face_normals[tri[0]])     # + outside the body
+                if not -FOREARM_CAPSULE_SKIN_MM[0] <= height <= FOREARM_CAPSULE_SKIN_MM[1]:
                     off_skin[n] = off_skin.get(n, 0) + 1
                     continue
                 carried.setdefault(n, []).append(back)

@@ -1439,6 +1439,10 @@ def test_forearm_capsule_markers_rebind_the_forearms_markers_from_its_stacks():
     far = dict(markers, RWRA=MarkerBinding("RWRA", "radius_r", local("RWRA", true_world["RWRA"] + [0, 25, 0])))
     rebound, _ = forearm_capsule_markers(stacks, sk, "r", far, skin)
     assert "RWRA" not in rebound and "RWRB" in rebound
+    # a marker a whole-body capsule bound keeps that binding
+    kept = dict(markers, RWRB=MarkerBinding("RWRB", "ulna_r", markers["RWRB"].local, "capsule"))
+    rebound, _ = forearm_capsule_markers(stacks, sk, "r", kept, skin)
+    assert set(rebound) == {"RWRA"}
     # a stack whose capsule lies off the skin once carried back (the skin slid over the bone) is not used;
     # stacks that disagree bind nothing
     def moved_cap(k, shift):
