@@ -375,7 +375,11 @@ def evaluate_subject(subject_dir: str | os.PathLike, truth_dir: str | os.PathLik
 
                 d, j = cKDTree(found).query(truth_c)
                 err = found[j] - truth_c
+                # the capsules at marker spots (the paper's protocol) are the truth's last rows; unlike the
+                # others they are not placed between slice planes
+                n_marked = len(ft["poses"].get(key, {}).get("marker_capsules_lps", {}))
                 result["capsules"][pose] = {"n_truth": int(len(truth_c)), "n_found": int(len(found)),
+                                            "n_at_markers": int(n_marked),
                                             "centre_mm": d.tolist(), "slice_axis_mm": np.abs(err[:, 2]).tolist()}
     def med(key):
         v = [r[key] for r in result["bones"].values() if key in r and np.isfinite(r[key])]

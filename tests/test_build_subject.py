@@ -142,6 +142,12 @@ def test_evaluate_subject_cli(built, phantom, cli):
     assert 0 < f["dice"] <= f["oracle_dice"] <= 1
     assert f["personal_surface_mean_mm"] < f["personal_surface_p95_mm"]
     assert r["summary"]["marker_binding_median_mm"] is not None
+    # the forearm stacks' capsules (found while the stage failed) scored against the truth's; this
+    # standard-protocol phantom has none at the marker spots
+    for pose, c in r["capsules"].items():
+        assert c["n_found"] == c["n_truth"] == len(c["centre_mm"]) and c["n_at_markers"] == 0, pose
+        assert max(c["centre_mm"]) < 1.0
+    assert len(r["capsules"]) == 3
     # the oracle (the truth voxelised on each station) is close to the truth
     assert r["summary"]["oracle_dice"] > 0.7
     # the warp-vs-affine comparison is made on the same bones (those with an affine-only mesh)
