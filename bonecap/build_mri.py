@@ -58,8 +58,8 @@ from bonecap.motion.paper import minimal_rotation
 from bonecap.parallel import Pending, default_workers, fork_map, fork_or_here, fork_start
 from bonecap.skeleton.kinematics import subtree as _subtree
 
-__all__ = ["MODEL_TO_LPS", "capsules_to_markers", "forearm_capsule_markers", "load_stations", "template_to_body", "bone_seeds", "shaft_line",
-           "load_seeds", "build_from_mri", "warp_targets", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
+__all__ = ["MODEL_TO_LPS", "capsules_to_markers", "forearm_capsule_markers", "load_stations", "template_to_body",
+           "bone_seeds", "shaft_line", "load_seeds", "build_from_mri", "warp_targets", "SEGMENTED_BONES", "pose_from_capsules", "pose_inside_skin",
            "reframe_subject", "elbow_offsets", "personal_label_meshes", "personal_labels", "label_table"]
 
 #: Template world (X anterior, Y up, Z right) to LPS for a supine subject.
@@ -2545,9 +2545,10 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     markers are expected where their bound positions ride the registered
     bones (the humerus's, the epicondyles, with the ulna), and the capsules
     found there are named one to one (:func:`~bonecap.segmentation.capsules.match_capsules`).
-    A marker on the ulna or the radius that got a capsule, and that no capsule of
-    the whole-body stations bound already, is bound again from it: the capsule carried back to the MRI pose with its bone's registration
-    (kept where it lies on the personal skin there, within :data:`FOREARM_CAPSULE_SKIN_MM`),
+    A marker on the ulna or the radius that got a capsule, and that no capsule
+    of the whole-body stations bound already, is bound again from it: the
+    capsule carried back to the MRI pose with its bone's registration (kept
+    where it lies on the personal skin there, within :data:`FOREARM_CAPSULE_SKIN_MM`),
     averaged over the stacks that show it (while they agree,
     :data:`FOREARM_CAPSULE_SPREAD_MM`), and the marker one
     marker-minus-capsule radius out along the personal skin's normal
@@ -2690,9 +2691,9 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
         missed, however well the rest fits).
     markers : dict of str -> MarkerBinding, optional
         The subject's markers (bone, position in the bone frame). Those of the
-        ulna and the radius whose capsules the stacks show are bound again from
-        them, **in this dict** (:func:`forearm_capsule_markers`), before the
-        twists are read.
+        ulna and the radius whose capsules the stacks show (and that no
+        whole-body capsule bound) are bound again from them, **in this dict**
+        (:func:`forearm_capsule_markers`), before the twists are read.
     registered : Pending, optional
         The stacks' registrations already started (:func:`start_forearm_registration`
         with the same ``dirs``, ``personal``, ``side`` and ``max_icp_mm``).
