@@ -4,7 +4,8 @@ For each seed: make the default phantom (or reuse one), run ``bonecap build-subj
 on its MRI stations with its static trial and forearm stacks (wall time and peak RSS
 of that process), score it with ``bonecap evaluate subject``; animate its trials with
 the least-squares solver (with and without the forearm model) and the paper solver,
-and score each with ``bonecap evaluate motion``. The no-MRI path (template scaled to
+and score each with ``bonecap evaluate motion`` (and the right forearm's bones in the
+pronation trial, also at the twists between the forearm stacks': :func:`forearm_between`). The no-MRI path (template scaled to
 the static trial) is run beside it as the baseline a lab without MRI gets.
 
 Every step runs as its own ``bonecap`` process, as a user would run it.
@@ -49,6 +50,39 @@ def run(args: list, log: Path) -> tuple[float, float]:
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     # ru_maxrss of children is the max over all children so far: report it when it grew
     return wall, max(peak, before) / 1024.0
+
+
+#: The phantom's forearm stacks' true twists (deg): the forearm model is fitted there.
+FOREARM_TWISTS = (0.0, 99.5, 172.1)
+
+
+def forearm_between(anim: Path, truth: Path, side: str = "r", away_deg: float = 10.0) -> dict:
+    """The forearm bones' orientation error in the pronation trial, all frames and those whose true
+    twist lies more than ``away_deg`` from every fitted twist (#6: the model "evaluated also at twists
+    between the fitted ones"): bone -> {"deg_median", "deg_p95", "between_deg_median", "between_deg_p95",
+    "between_frames"}."""
+    from scipy.spatial.transform import Rotation
+
+    f_an, f_tr = anim / "pronation_poses.npz", truth / "pronation_poses.npz"
+    if not (f_an.is_file() and f_tr.is_file()):
+        return {}
+    a, t = np.load(f_an), np.load(f_tr)
+    tw = t[f"forearm_twist_deg_{side}"]
+    between = np.min(np.abs(tw[:, None] - np.asarray(FOREARM_TWISTS)[None]), axis=1) > away_deg
+    out = {}
+    for bone in (f"radius_{side}", f"ulna_{side}"):
+        ba, bt = [str(b) for b in a["bones"]], [str(b) for b in t["bones"]]
+        A, T = a["transforms"][:, ba.index(bone)], t["transforms"][:, bt.index(bone)]
+        n = min(len(A), len(T))
+        ok = np.isfinite(A[:n]).all(axis=(1, 2))
+        E = np.einsum("nji,njk->nik", T[:n][ok, :3, :3], A[:n][ok, :3, :3])
+        deg = np.degrees(Rotation.from_matrix(E).magnitude())
+        bw = between[:n][ok]
+        out[bone] = {"deg_median": float(np.median(deg)), "deg_p95": float(np.percentile(deg, 95)),
+                     "between_deg_median": float(np.median(deg[bw])) if bw.any() else None,
+                     "between_deg_p95": float(np.percentile(deg[bw], 95)) if bw.any() else None,
+                     "between_frames": int(bw.sum())}
+    return out
 
 
 def evaluate(what: str, path: Path, truth: Path, log: Path) -> dict:
@@ -124,7 +158,8 @@ def main() -> None:
             ar = json.loads((out / "animate_report.json").read_text())
             fps = [r["frames_per_second"] for r in ar["trials"].values()]
             motions[label] = {**motion_summary(evaluate("motion", out, truth, w / f"ev_{out.name}.log")),
-                              "wall_s": round(t, 1), "solve_frames_per_s_median": float(np.median(fps))}
+                              "wall_s": round(t, 1), "solve_frames_per_s_median": float(np.median(fps)),
+                              "forearm_pronation": forearm_between(out, truth)}
         qc_s = float((rep.get("timings_s") or {}).get("qc pictures", 0.0))
         summary[seed] = {"build_wall_s": round(wall, 1), "build_wall_without_qc_s": round(wall - qc_s, 1),
                          "build_peak_rss_mb": round(rss),
