@@ -2586,6 +2586,7 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
     .. [1] Kojima et al., sections 4 and 8.2 (capsules at the marker spots; the twist read on them).
     """
     from bonecap.motion.forearm import FOREARM_MARKERS
+    from bonecap.motion.rigid import apply_transform
     from bonecap.segmentation.capsules import match_capsules
     from bonecap.subject import MarkerBinding
 
@@ -2614,14 +2615,14 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
             # bone -> its MRI pose's motion into this stack; the humerus's markers ride the ulna
             moves[n] = (Ts[b] if b in Ts else Ts[ulna_n] @ np.linalg.inv(U) @ personal.bones[b].bone_to_world
                         ) @ np.linalg.inv(personal.bones[b].bone_to_world)
-        expected = {n: _apply_point(moves[n] @ personal.bones[markers[n].bone].bone_to_world, markers[n].local)
-                    for n in names}
+        expected = {n: apply_transform(moves[n] @ personal.bones[markers[n].bone].bone_to_world,
+                                       markers[n].local[None])[0] for n in names}
         for n, c in match_capsules(centres, expected, max_distance_mm=max_distance_mm).items():
             # a marker the whole-body stations' capsules bound keeps that binding: measured at the MRI pose
             # itself, it needs no registration (seed 2 of the capsule protocol: its RWRA 1.9 mm from the
             # truth so, 2.6 mm bound again from the stacks, the radius 1.8 -> 3.2 deg in the trials)
             if markers[n].bone in own and markers[n].bone in Ts and markers[n].source != "capsule":
-                back = _apply_point(np.linalg.inv(moves[n]), c)
+                back = apply_transform(np.linalg.inv(moves[n]), c[None])[0]
                 q, _, tri = skin_tm.nearest.on_surface(back[None])
                 height = float((back - q[0]) @ skin_tm.face_normals[tri[0]])     # + outside the body
                 if not -FOREARM_CAPSULE_SKIN_MM[0] <= height <= FOREARM_CAPSULE_SKIN_MM[1]:
@@ -2647,10 +2648,6 @@ def forearm_capsule_markers(stacks, personal: Skeleton, side: str, markers, skin
         report[n] = {"stacks": len(carried[n]), "off_skin": off_skin.get(n, 0), "spread_mm": round(spread[n], 2),
                      "moved_mm": round(float(np.linalg.norm(local - markers[n].local)), 2)}
     return bindings, report
-
-
-def _apply_point(T: np.ndarray, p) -> np.ndarray:
-    return T[:3, :3] @ np.asarray(p, float) + T[:3, 3]
 
 
 def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, side: str = "r",
@@ -2762,8 +2759,8 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     theta = raw - raw[int(np.argmin(np.abs(raw)))]
     for (d, _), t in zip(report["stacks"].items(), theta):
         report["stacks"][d]["twist_deg"] = float(t)
-    model = fit_forearm_model(theta, np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), wr, el,
-                              side=side)
+    ulna_at, radius_at = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
+    model = fit_forearm_model(theta, ulna_at, radius_at, wr, el, side=side)
     out = model.to_dict()
     # the subject's MRI knows where its radio-ulnar axis is: the radius turns about it rather than
     # about the line through the control points on the skin markers' segments (ForearmModel.radius_axis)
@@ -2773,8 +2770,8 @@ def fit_forearm_from_stacks(dirs: list[str | os.PathLike], personal: Skeleton, s
     # turn carried that into 4-8 mm of radius position)
     if {"proximal_radioulnar", "distal_radioulnar"} <= set(U.joint_centres):
         guess = np.array([U.joint_centres["proximal_radioulnar"], U.joint_centres["distal_radioulnar"]])
-        ends, report["radius_axis"] = radius_axis_from_poses(
-            np.array([p[0] for p in poses]), np.array([p[1] for p in poses]), guess, ref=int(np.argmin(np.abs(raw))))
+        ends, report["radius_axis"] = radius_axis_from_poses(ulna_at, radius_at, guess,
+                                                             ref=int(np.argmin(np.abs(raw))))
         if ends is not None and max(report["radius_axis"]["guess_off_mm"]) <= RADIUS_AXIS_MAX_OFF_MM:
             out["radius_axis_ulna_mm"] = ends.ravel().tolist()
         report["radius_axis"]["used"] = "radius_axis_ulna_mm" in out

@@ -37,6 +37,7 @@ from bonecap.io.atomic import atomic_path
 from bonecap.io.imaging import write_nifti
 from bonecap.io.mesh import write_mesh
 from bonecap.model import Mesh, Volume
+from bonecap.motion.rigid import apply_transform
 from bonecap.phantom.forearm import MODEL_TO_LPS, pose_forearm
 from bonecap.progress import stage_bar
 
@@ -119,19 +120,22 @@ def _marker_capsules(marker_set, skeleton, skin, capsule_radius_mm: float | None
     if capsule_radius_mm is None:
         capsule_radius_mm = CAPSULE_DIAMETER_MM / 2
     binding = place_phantom_markers(marker_set, skeleton, skin, marker_radius_mm=marker_radius_mm)
-    tm = skin.to_trimesh()
-    contact, _, _ = tm.nearest.on_surface(binding.world)
-    normal = binding.world - contact
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
-    centres = contact + capsule_radius_mm * normal
-    lps = centres @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3]
+    lps = apply_transform(MODEL_TO_LPS, _capsules_under(binding.world, skin, capsule_radius_mm))
     return {"frame": "LPS, MRI pose (the stations' true world)", "capsule_radius_mm": capsule_radius_mm,
             "marker_radius_mm": marker_radius_mm,
             "centres_lps": {n: c.tolist() for n, c in zip(binding.names, lps)}}
 
 
-def _to_lps_points(p: np.ndarray) -> np.ndarray:
-    return np.asarray(p, float) @ MODEL_TO_LPS[:3, :3].T + MODEL_TO_LPS[:3, 3]
+def _capsules_under(markers: np.ndarray, skin: Mesh, capsule_radius_mm: float) -> np.ndarray:
+    """Centres of capsules touching the skin where markers (centres ``(M, 3)``, resting on ``skin``) touch it.
+
+    A marker's centre is one marker radius out along the skin's normal from its contact point; the capsule
+    rests on the same contact point, its centre one capsule radius out.
+    """
+    contact, _, _ = skin.to_trimesh().nearest.on_surface(markers)
+    normal = markers - contact
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+    return contact + capsule_radius_mm * normal
 
 
 def _forearm_marker_capsules(marker_set, skeleton, skin: Mesh, side: str, capsule_radius_mm: float | None = None,
@@ -161,10 +165,7 @@ def _forearm_marker_capsules(marker_set, skeleton, skin: Mesh, side: str, capsul
     if not names:
         return {}
     binding = place_phantom_markers(marker_set, skeleton, skin, names=names, marker_radius_mm=marker_radius_mm)
-    contact, _, _ = skin.to_trimesh().nearest.on_surface(binding.world)
-    normal = binding.world - contact
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
-    centres = contact + capsule_radius_mm * normal
+    centres = _capsules_under(binding.world, skin, capsule_radius_mm)
     return {n: (b, c) for n, b, c in zip(binding.names, binding.bones, centres)}
 
 
@@ -362,7 +363,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         # with the radius about the radio-ulnar axis (pose_forearm) while a marker rides its bone: where the
         # two part (the ulnar styloid's spot is 12 mm under the wound skin at 172 deg, the dorsal forearm's
         # 5 mm), the capsule would be buried in the tissue or float off it, and this stack does not show it.
-        tm = _keep_faces(posed.skin, crop[0]).to_trimesh() if at_ref else None
+        skin_crop = _keep_faces(posed.skin, crop[0])
+        tm = skin_crop.to_trimesh() if at_ref else None
         for mname, (bone, c_ref) in at_ref.items():
             T = posed.bone_to_world.get(bone, skeleton.bones[bone].bone_to_world) @ np.linalg.inv(
                 skeleton.bones[bone].bone_to_world)
@@ -370,11 +372,11 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
             q, _, tri = tm.nearest.on_surface(c[None])
             height = float((c - q[0]) @ tm.face_normals[tri[0]])      # out of the skin (outward normals)
             if abs(height - CAPSULE_DIAMETER_MM / 2) <= _CAPSULE_ON_SKIN_MM:
-                forearm_marker_capsules.setdefault(mname, {})[_twist_name(theta)] = _to_lps_points(c)
+                forearm_marker_capsules.setdefault(mname, {})[_twist_name(theta)] = apply_transform(MODEL_TO_LPS, c[None])[0]
         for m, keep in zip((posed.skin, posed.muscle), crop):
             if (_faces_across(m, posed.elbow, posed.wrist, -reach, L + reach) & ~keep).any():
                 raise RuntimeError(f"the forearm at {theta} deg moved out of the first twist's crop")
-        f_layers = [(_to_lps(_keep_faces(posed.skin, crop[0])), "fat"),
+        f_layers = [(_to_lps(skin_crop), "fat"),
                     (_to_lps(_keep_faces(posed.muscle, crop[1])), "muscle")]
         posed.skin = posed.muscle = None      # the whole posed body (~14 MB) is not needed past here
         f_labels = []
