@@ -418,15 +418,16 @@ def test_failed_writes_leave_nothing(tmp_path, monkeypatch):
     target.mkdir()
     (target / "keep.txt").write_text("old output\n")
     calls = []
-    real_save = pydicom.Dataset.save_as
+    real_write = imaging._write_slice
 
-    def failing_save(self, filename, *args, **kwargs):
-        calls.append(filename)
+    def failing_write(path, parts):
+        calls.append(path)
         if len(calls) == 3:
             raise OSError("disk full")
-        return real_save(self, filename, *args, **kwargs)
+        return real_write(path, parts)
 
-    monkeypatch.setattr(pydicom.Dataset, "save_as", failing_save)
+    # every uncompressed slice file is written through this seam
+    monkeypatch.setattr(imaging, "_write_slice", failing_write)
     with pytest.raises(OSError, match="disk full"):
         write_dicom_series(vol, target)
     calls.clear()

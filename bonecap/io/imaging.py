@@ -966,39 +966,62 @@ def write_dicom_series(volume: Volume, folder: str | os.PathLike, *, series_desc
                 ds.compress(syntax, px, encoding_plugin="pylibjpeg", generate_instance_uid=False)
                 ds.save_as(tmp / names[k], enforce_file_format=True)
         else:
-            # Uncompressed: every slice's header is the first one's but for five elements. The
-            # first is encoded once and read back: its elements stay raw (already encoded bytes),
-            # so each save_as below re-encodes only the elements set here (building and encoding
-            # ~45 elements per file was most of the time of a large series). The bytes are those
-            # of a dataset built from scratch (tests/test_io_imaging.py checks it).
-            from pydicom import dcmread
+            # Uncompressed: every slice's file is the first one's but for five elements (the SOP
+            # instance UID, also in the file meta, the instance number, the position and the slice
+            # location) and the pixels. The elements that do not change are encoded once, by
+            # pydicom, in the order write_dataset writes them (tags ascending), and each file is
+            # those bytes with the changing elements encoded in between: ~0.3 ms a file instead of
+            # ~1.7 ms for a dataset written whole (re-encoding its ~45 elements was most of a
+            # series' time). The bytes are those of a dataset built from scratch and written by
+            # dcmwrite (tests/test_phantom_mri.py checks it).
             from pydicom.dataelem import DataElement
-            from pydicom.filewriter import dcmwrite
+            from pydicom.filebase import DicomBytesIO
+            from pydicom.filewriter import write_data_element, write_file_meta_info
+            from pydicom.tag import Tag
 
             uids = [generate_uid() for _ in range(K)]
-            ds0, _ = header(0, uids[0])
-            ds0.PixelData = plane(0).tobytes()
-            buf = io.BytesIO()
-            dcmwrite(buf, ds0, enforce_file_format=True)
-            del ds0
-            buf.seek(0)
-            ds = dcmread(buf)
-            # dcmwrite deep-copies the file meta on every call: a plain one copies in a few µs,
-            # the one read back (raw elements tied to its buffer) took ~1 ms
-            fm = FileMetaDataset()
-            for elem in ds.file_meta:
-                fm.add(DataElement(elem.tag, elem.VR, elem.value))
-            ds.file_meta = fm
+            ds0, fm = header(0, uids[0])
+            encodings = ds0.SpecificCharacterSet
+
+            def encoded(write) -> bytes:
+                fp = DicomBytesIO()
+                fp.is_implicit_VR, fp.is_little_endian = False, True
+                write(fp)
+                return fp.getvalue()
+
+            changing = [Tag(t) for t in ("SOPInstanceUID", "InstanceNumber", "ImagePositionPatient", "SliceLocation")]
+            # the constant bytes before each changing element, and after the last one
+            gaps: list[bytes] = []
+            run: list = []
+            for tag in sorted(ds0.keys()):
+                if tag in changing:
+                    gaps.append(encoded(lambda fp: [write_data_element(fp, e, encodings) for e in run]))
+                    run = []
+                else:
+                    run.append(ds0[tag])
+            gaps.append(encoded(lambda fp: [write_data_element(fp, e, encodings) for e in run]))
+            assert len(gaps) == len(changing) + 1
+            # PixelData (7FE0,0010) sorts after every element of the header: its tag, VR and length
+            # are the same for every slice (OW: 16-bit pixels), then the plane's bytes
+            pixel_head = encoded(lambda fp: write_data_element(
+                fp, DataElement(0x7FE00010, "OW", plane(0).tobytes()), encodings))[:12]
             for k in range(K):
                 position = origin + k * step
-                ds.file_meta.MediaStorageSOPInstanceUID = uids[k]
-                ds.SOPInstanceUID = uids[k]
-                ds.InstanceNumber = k + 1
-                ds.ImagePositionPatient = [_ds(v) for v in position]
-                ds.SliceLocation = _ds(position @ normal)
-                ds.PixelData = plane(k).tobytes()
-                ds.save_as(tmp / names[k], enforce_file_format=True)
+                fm.MediaStorageSOPInstanceUID = uids[k]
+                values = (uids[k], k + 1, [_ds(v) for v in position], _ds(position @ normal))
+                parts = [b"\x00" * 128 + b"DICM", encoded(lambda fp: write_file_meta_info(fp, fm)), gaps[0]]
+                for tag, value, gap in zip(changing, values, gaps[1:]):
+                    elem = DataElement(tag, ds0[tag].VR, value)
+                    parts += [encoded(lambda fp: write_data_element(fp, elem, encodings)), gap]
+                parts += [pixel_head, plane(k).tobytes()]
+                _write_slice(tmp / names[k], parts)
     return [folder / name for name in names]
+
+
+def _write_slice(path: Path, parts: list[bytes]) -> None:
+    """One DICOM file from its encoded parts (a seam for tests of failed writes)."""
+    with open(path, "wb") as f:
+        f.writelines(parts)
 
 
 def _nifti_ready(data: np.ndarray) -> np.ndarray:

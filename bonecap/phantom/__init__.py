@@ -51,14 +51,18 @@ FOREARM_TWISTS_DEG = (0.0, 99.5, 172.1)
 #: ``trials_beside``: the trials are made in a forked child while the MRI renders
 #: (:func:`run_beside`); the default preset makes them after the subject instead,
 #: in a child that ends before the MRI starts, for its memory target (the two
-#: processes together held ~350 MiB; ~5 s longer).
+#: processes together held ~350 MiB; ~5 s longer). ``forearm_beside``: the
+#: forearm stacks likewise, in a second child beside the stations (the tiny
+#: preset: ~0.8 s less wall time on 2 cores); after them in this process otherwise.
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {"n_stations": 8, "pixel_mm": 1.8, "pitch_mm": 5.0, "thickness_mm": 5.0, "supersample": 4,
                 "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
-                "duration_scale": 1.0, "merged_voxel_mm": 2.0, "trials_beside": False},
+                "duration_scale": 1.0, "merged_voxel_mm": 2.0, "trials_beside": False,
+                "forearm_beside": False},
     "tiny": {"n_stations": 2, "pixel_mm": 4.0, "pitch_mm": 15.0, "thickness_mm": 15.0, "supersample": 2,
              "through": 2, "forearm_pixel_mm": 1.5, "forearm_pitch_mm": 5.0, "n_capsules": 6,
-             "duration_scale": 0.2, "merged_voxel_mm": 6.0, "trials_beside": True},
+             "duration_scale": 0.2, "merged_voxel_mm": 6.0, "trials_beside": True,
+             "forearm_beside": True},
 }
 
 
@@ -203,10 +207,13 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
 
     The trials are made in a forked child process: at the tiny preset while this
     one renders the MRI (:func:`run_beside`), at the default preset after the
-    subject, for memory (``PRESETS[preset]["trials_beside"]``);
-    ``BONECAP_WORKERS=1`` keeps everything in one process. ``timings_s["trials"]``
-    is the child's time, ``trials_wait`` what was left to wait for, ``wall_s``
-    the whole run.
+    subject, for memory (``PRESETS[preset]["trials_beside"]``). At the tiny
+    preset the forearm stacks are rendered in a second child beside the
+    stations (``forearm_beside``); each has its own random stream, so the
+    outputs are the same wherever they run. ``BONECAP_WORKERS=1`` keeps
+    everything in one process. ``timings_s["trials"]`` and ``["forearm"]`` are
+    the stages' own times, ``trials_wait`` and ``forearm_wait`` what was left to
+    wait for when a child made them, ``wall_s`` the whole run.
 
     Parameters
     ----------
@@ -237,6 +244,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     dict
         The summary also written to ``phantom.json``.
     """
+    from pydicom.uid import generate_uid
+
     from bonecap.markers import load_marker_set
     from bonecap.phantom.mri import (CAPSULE_DIAMETER_MM, FOREARM_EXTEND_MM, ForearmPose, capsule_meshes,
                                      icosphere, plan_stations, render_forearm_stacks, render_stations,
@@ -303,6 +312,99 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         trials_done = fork_or_here(trials_stage)()
         trials_job = lambda: trials_done  # noqa: E731
 
+    # 3. Forearm stacks at the paper's twists: defined here, run beside the stations at the tiny preset
+    # (a forked child, like the trials) or after them in this process (default: memory). Their own
+    # random stream and the study UID made here: the same stacks wherever they run.
+    study_uid = generate_uid()
+    patient = {"patient_name": f"Phantom^{seed}", "patient_id": f"PHANTOM{seed:04d}"}
+    labels_dir = truth / "labels"
+    forearm_rng = np.random.default_rng([int(seed), 3])
+
+    def forearm_stage():
+        t = time.perf_counter()
+        poses, forearm_truth = {}, {}
+        forearm_marker_capsules: dict[str, dict[str, np.ndarray]] = {}
+        spheres = {name: _bounding_sphere(b.mesh) for name, b in skeleton.bones.items() if b.mesh is not None}
+        crop = None
+        for theta in FOREARM_TWISTS_DEG:
+            posed = pose_forearm(skeleton, subject.skin, subject.muscle, theta, side="r")
+            # Only a slab of the posed body across the forearm can show in a stack: the rest of the
+            # whole-body skin and fascia (~43 MB for the three twists in LPS at the default preset)
+            # is cut off here. Whole faces go, in order, and every face a stack's slice planes cross
+            # stays (so the images are unchanged); one face set for all twists keeps the skins'
+            # common topology, which the capsule placement needs.
+            L = float(np.linalg.norm(posed.wrist - posed.elbow))
+            reach = FOREARM_EXTEND_MM + cfg["forearm_pitch_mm"]     # the slices' reach, profile included
+            if crop is None:
+                crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
+                                      L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]
+                # the paper's protocol marks the forearm markers' spots in the forearm stacks too: where the
+                # trials place the markers, on the skin of the first (reference) twist
+                at_ref = _forearm_marker_capsules(marker_set, skeleton, _keep_faces(subject.skin, crop[0]), "r") \
+                    if marker_capsules else {}
+            # Each carried with its marker's bone, as the trials carry the marker (its rigid part: the trials'
+            # soft-tissue artefact is not applied to the capsules, so they are the truth's). The phantom's skin winds
+            # with the radius about the radio-ulnar axis (pose_forearm) while a marker rides its bone: where the
+            # two part (the ulnar styloid's spot is 12 mm under the wound skin at 172 deg, the dorsal forearm's
+            # 5 mm), the capsule would be buried in the tissue or float off it, and this stack does not show it.
+            skin_crop = _keep_faces(posed.skin, crop[0])
+            tm = skin_crop.to_trimesh() if at_ref else None
+            for mname, (bone, c_ref) in at_ref.items():
+                T = posed.bone_to_world.get(bone, skeleton.bones[bone].bone_to_world) @ np.linalg.inv(
+                    skeleton.bones[bone].bone_to_world)
+                c = T[:3, :3] @ c_ref + T[:3, 3]
+                q, _, tri = tm.nearest.on_surface(c[None])
+                height = float((c - q[0]) @ tm.face_normals[tri[0]])      # out of the skin (outward normals)
+                if abs(height - CAPSULE_DIAMETER_MM / 2) <= _CAPSULE_ON_SKIN_MM:
+                    forearm_marker_capsules.setdefault(mname, {})[_twist_name(theta)] = apply_transform(MODEL_TO_LPS, c[None])[0]
+            for m, keep in zip((posed.skin, posed.muscle), crop):
+                if (_faces_across(m, posed.elbow, posed.wrist, -reach, L + reach) & ~keep).any():
+                    raise RuntimeError(f"the forearm at {theta} deg moved out of the first twist's crop")
+            f_layers = [(_to_lps(skin_crop), "fat"),
+                        (_to_lps(_keep_faces(posed.muscle, crop[1])), "muscle")]
+            posed.skin = posed.muscle = None      # the whole posed body (~14 MB) is not needed past here
+            f_labels = []
+            for name, bone in skeleton.bones.items():
+                if bone.mesh is None:
+                    continue
+                T_model = posed.bone_to_world.get(name, bone.bone_to_world)
+                # only the bones that can reach a forearm stack: the whole skeleton posed three times
+                # was ~100 MB of copies that the renderer sectioned only to find nothing in the stack
+                if not _may_reach_forearm_stack(spheres[name], T_model, posed.elbow, posed.wrist, cfg):
+                    continue
+                T = MODEL_TO_LPS @ T_model
+                f_layers.append((bone.mesh.transformed(T, "lps"), "cortex"))
+                if bone.inner_mesh is not None:
+                    f_layers.append((bone.inner_mesh.transformed(T, "lps"), "marrow"))
+                if name in posed.bone_to_world:
+                    f_labels.append((bone.mesh.transformed(T, "lps"), bone_ids[name]))
+            axis = np.stack([posed.elbow, posed.wrist]) @ MODEL_TO_LPS[:3, :3].T
+            poses[_twist_name(theta)] = ForearmPose(f_layers, axis, skin=f_layers[0][0], label_meshes=f_labels)
+            forearm_truth[_twist_name(theta)] = {
+                "theta_deg": theta,
+                "radioulnar_axis_lps": (posed.axis_ends @ MODEL_TO_LPS[:3, :3].T).tolist(),
+                "bone_to_lps": {n: (MODEL_TO_LPS @ T).tolist() for n, T in posed.bone_to_world.items()},
+            }
+        stacks, placement = render_forearm_stacks(
+            poses, out / "mri", forearm_rng, n_capsules=cfg["n_capsules"], pixel_mm=cfg["forearm_pixel_mm"],
+            pitch_mm=cfg["forearm_pitch_mm"], thickness_mm=cfg["forearm_pitch_mm"],
+            inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"],
+            study_uid=study_uid, patient=patient, marker_capsules=forearm_marker_capsules)
+        # the posed meshes of the three twists (~100 MB at the default preset) are not used again
+        del poses, posed, f_layers, f_labels
+        for name, st in stacks.items():
+            forearm_truth[name]["folder"] = str(st.folder.relative_to(out))
+            forearm_truth[name]["capsule_centres_lps"] = np.asarray(st.capsule_centres).tolist()
+            forearm_truth[name]["marker_capsules_lps"] = {m: np.asarray(c).tolist() for m, c in st.marker_capsules.items()}
+            forearm_truth[name]["stack"] = st.plan.to_dict()
+            if st.labels is not None:
+                write_nifti(st.labels, labels_dir / f"forearm_{name}_oracle.nii.gz")
+                st.labels = None
+        return forearm_truth, placement.radius_mm, sorted(stacks), time.perf_counter() - t
+
+    if cfg["forearm_beside"]:
+        forearm_job = run_beside(forearm_stage)
+
     capsule_truth = None
     if marker_capsules:
         capsule_truth = _marker_capsules(marker_set, skeleton, subject.skin)
@@ -315,7 +417,6 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     bar.set_postfix_str("stations")
     plans = plan_stations(layers[0][0], n_stations=cfg["n_stations"], pixel_mm=cfg["pixel_mm"],
                           pitch_mm=cfg["pitch_mm"], thickness_mm=cfg["thickness_mm"], rng=rng)
-    labels_dir = truth / "labels"
 
     def save_station_labels(st) -> None:
         write_nifti(st.labels, labels_dir / f"{st.plan.name}_oracle.nii.gz")
@@ -323,8 +424,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     stations = render_stations(layers, plans, out / "mri", rng, label_meshes=label_meshes,
                                merged_voxel_mm=None, inplane_supersample=cfg["supersample"],
                                through_plane_samples=cfg["through"], on_station=save_station_labels,
-                               keep_labels=False, patient={"patient_name": f"Phantom^{seed}",
-                                                           "patient_id": f"PHANTOM{seed:04d}"})
+                               keep_labels=False, study_uid=study_uid, patient=patient)
     # streamed slab by slab: the whole-body grid (~140 MB at the default preset) is never held
     write_merged_labels(label_meshes, labels_dir / "merged.nii.gz", voxel_mm=cfg["merged_voxel_mm"],
                         inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"])
@@ -334,90 +434,17 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     timings["stations"] = time.perf_counter() - t0
     bar.update()
 
-    # 3. Forearm stacks at the paper's twists.
+    # 3. The forearm stacks (beside the stations at the tiny preset).
     tidy()
     t0 = time.perf_counter()
     bar.set_postfix_str("forearm")
-    poses, forearm_truth = {}, {}
-    forearm_marker_capsules: dict[str, dict[str, np.ndarray]] = {}
-    spheres = {name: _bounding_sphere(b.mesh) for name, b in skeleton.bones.items() if b.mesh is not None}
-    crop = None
-    for theta in FOREARM_TWISTS_DEG:
-        posed = pose_forearm(skeleton, subject.skin, subject.muscle, theta, side="r")
-        # Only a slab of the posed body across the forearm can show in a stack: the rest of the
-        # whole-body skin and fascia (~43 MB for the three twists in LPS at the default preset)
-        # is cut off here. Whole faces go, in order, and every face a stack's slice planes cross
-        # stays (so the images are unchanged); one face set for all twists keeps the skins'
-        # common topology, which the capsule placement needs.
-        L = float(np.linalg.norm(posed.wrist - posed.elbow))
-        reach = FOREARM_EXTEND_MM + cfg["forearm_pitch_mm"]     # the slices' reach, profile included
-        if crop is None:
-            crop = [_faces_across(m, posed.elbow, posed.wrist, -reach - _FOREARM_CROP_MARGIN_MM,
-                                  L + reach + _FOREARM_CROP_MARGIN_MM) for m in (posed.skin, posed.muscle)]
-            # the paper's protocol marks the forearm markers' spots in the forearm stacks too: where the
-            # trials place the markers, on the skin of the first (reference) twist
-            at_ref = _forearm_marker_capsules(marker_set, skeleton, _keep_faces(subject.skin, crop[0]), "r") \
-                if marker_capsules else {}
-        # Each carried with its marker's bone, as the trials carry the marker (its rigid part: the trials'
-        # soft-tissue artefact is not applied to the capsules, so they are the truth's). The phantom's skin winds
-        # with the radius about the radio-ulnar axis (pose_forearm) while a marker rides its bone: where the
-        # two part (the ulnar styloid's spot is 12 mm under the wound skin at 172 deg, the dorsal forearm's
-        # 5 mm), the capsule would be buried in the tissue or float off it, and this stack does not show it.
-        skin_crop = _keep_faces(posed.skin, crop[0])
-        tm = skin_crop.to_trimesh() if at_ref else None
-        for mname, (bone, c_ref) in at_ref.items():
-            T = posed.bone_to_world.get(bone, skeleton.bones[bone].bone_to_world) @ np.linalg.inv(
-                skeleton.bones[bone].bone_to_world)
-            c = T[:3, :3] @ c_ref + T[:3, 3]
-            q, _, tri = tm.nearest.on_surface(c[None])
-            height = float((c - q[0]) @ tm.face_normals[tri[0]])      # out of the skin (outward normals)
-            if abs(height - CAPSULE_DIAMETER_MM / 2) <= _CAPSULE_ON_SKIN_MM:
-                forearm_marker_capsules.setdefault(mname, {})[_twist_name(theta)] = apply_transform(MODEL_TO_LPS, c[None])[0]
-        for m, keep in zip((posed.skin, posed.muscle), crop):
-            if (_faces_across(m, posed.elbow, posed.wrist, -reach, L + reach) & ~keep).any():
-                raise RuntimeError(f"the forearm at {theta} deg moved out of the first twist's crop")
-        f_layers = [(_to_lps(skin_crop), "fat"),
-                    (_to_lps(_keep_faces(posed.muscle, crop[1])), "muscle")]
-        posed.skin = posed.muscle = None      # the whole posed body (~14 MB) is not needed past here
-        f_labels = []
-        for name, bone in skeleton.bones.items():
-            if bone.mesh is None:
-                continue
-            T_model = posed.bone_to_world.get(name, bone.bone_to_world)
-            # only the bones that can reach a forearm stack: the whole skeleton posed three times
-            # was ~100 MB of copies that the renderer sectioned only to find nothing in the stack
-            if not _may_reach_forearm_stack(spheres[name], T_model, posed.elbow, posed.wrist, cfg):
-                continue
-            T = MODEL_TO_LPS @ T_model
-            f_layers.append((bone.mesh.transformed(T, "lps"), "cortex"))
-            if bone.inner_mesh is not None:
-                f_layers.append((bone.inner_mesh.transformed(T, "lps"), "marrow"))
-            if name in posed.bone_to_world:
-                f_labels.append((bone.mesh.transformed(T, "lps"), bone_ids[name]))
-        axis = np.stack([posed.elbow, posed.wrist]) @ MODEL_TO_LPS[:3, :3].T
-        poses[_twist_name(theta)] = ForearmPose(f_layers, axis, skin=f_layers[0][0], label_meshes=f_labels)
-        forearm_truth[_twist_name(theta)] = {
-            "theta_deg": theta,
-            "radioulnar_axis_lps": (posed.axis_ends @ MODEL_TO_LPS[:3, :3].T).tolist(),
-            "bone_to_lps": {n: (MODEL_TO_LPS @ T).tolist() for n, T in posed.bone_to_world.items()},
-        }
-    stacks, placement = render_forearm_stacks(
-        poses, out / "mri", rng, n_capsules=cfg["n_capsules"], pixel_mm=cfg["forearm_pixel_mm"],
-        pitch_mm=cfg["forearm_pitch_mm"], thickness_mm=cfg["forearm_pitch_mm"],
-        inplane_supersample=cfg["supersample"], through_plane_samples=cfg["through"],
-        study_uid=stations.study_uid, marker_capsules=forearm_marker_capsules)
-    # the posed meshes of the three twists (~100 MB at the default preset) are not used again
-    del poses, posed, f_layers, f_labels
-    for name, st in stacks.items():
-        forearm_truth[name]["folder"] = str(st.folder.relative_to(out))
-        forearm_truth[name]["capsule_centres_lps"] = np.asarray(st.capsule_centres).tolist()
-        forearm_truth[name]["marker_capsules_lps"] = {m: np.asarray(c).tolist() for m, c in st.marker_capsules.items()}
-        forearm_truth[name]["stack"] = st.plan.to_dict()
-        if st.labels is not None:
-            write_nifti(st.labels, labels_dir / f"forearm_{name}_oracle.nii.gz")
-            st.labels = None
-    timings["forearm"] = time.perf_counter() - t0
+    if cfg["forearm_beside"]:
+        forearm_truth, capsule_radius_mm, forearm_stacks, timings["forearm"] = forearm_job()
+        timings["forearm_wait"] = time.perf_counter() - t0
+    else:
+        forearm_truth, capsule_radius_mm, forearm_stacks, timings["forearm"] = forearm_stage()
     bar.update()
+
 
     # 4. Trials (started beside the MRI above).
     tidy()
@@ -441,7 +468,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     _write_json(truth / "stations.json", {"stations": [st.plan.to_dict() for st in stations.stations],
                                           "study_uid": stations.study_uid})
     _write_json(truth / "forearm.json", {"side": "r", "poses": forearm_truth,
-                                         "capsule_radius_mm": placement.radius_mm})
+                                         "capsule_radius_mm": capsule_radius_mm})
     _write_json(truth / "skeleton.json", _skeleton_truth(skeleton))
     if capsule_truth is not None:
         _write_json(truth / "marker_capsules.json", capsule_truth)
@@ -459,7 +486,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
         "stations": [{"name": st.plan.name, "shape": list(st.plan.shape),
                       "shift_mm": round(st.plan.shift_mm, 3), "rotation_deg": round(st.plan.rotation_deg, 4)}
                      for st in stations.stations],
-        "forearm_stacks": sorted(stacks),
+        "forearm_stacks": forearm_stacks,
         "marker_capsules": len(capsule_truth["centres_lps"]) if capsule_truth else 0,
         "trials": sorted(trials.get("trials", {})) if isinstance(trials.get("trials"), dict) else trials.get(
             "trials"),

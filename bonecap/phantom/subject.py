@@ -2765,19 +2765,35 @@ def make_subject(seed: int = 0, stature_mm: float | None = None, generic="defaul
     S, Mu = _layers(S, Fat, cand, bm, h, timings)
     del Fat, cand, bm
     t0 = time.perf_counter()
-    # both dense surfaces first, then both decimations: the fields are freed before the decimation's
-    # child process starts beside this one (the phase held ~400 MiB with them)
-    skin = _dense_surface(S, origin, h, int(cfg["taubin_iterations"]), int(cfg["skin_faces"]))
-    del S
-    tidy()
-    _fill_cavities(Mu, -h)
-    _close_field(Mu)
-    muscle = _dense_surface(Mu, origin, h, int(cfg["taubin_iterations"]), int(cfg["muscle_faces"]))
-    del Mu
-    tidy()
-    skin = _finish_surface(*skin, int(cfg["skin_faces"]), "skin", lean=lean)
-    muscle = _finish_surface(*muscle, int(cfg["muscle_faces"]), "fascia", lean=lean)
-    tidy()
+
+    def fascia():
+        _fill_cavities(Mu, -h)
+        _close_field(Mu)
+        return _dense_surface(Mu, origin, h, int(cfg["taubin_iterations"]), int(cfg["muscle_faces"]))
+
+    if lean:
+        # both dense surfaces first, then both decimations: the fields are freed before the decimation's
+        # child process starts beside this one (the phase held ~400 MiB with them)
+        skin = _dense_surface(S, origin, h, int(cfg["taubin_iterations"]), int(cfg["skin_faces"]))
+        del S
+        tidy()
+        muscle = fascia()
+        del Mu
+        tidy()
+        skin = _finish_surface(*skin, int(cfg["skin_faces"]), "skin", lean=lean)
+        muscle = _finish_surface(*muscle, int(cfg["muscle_faces"]), "fascia", lean=lean)
+        tidy()
+    else:
+        # a small body: the fascia is made in a forked child beside the skin (two cores: ~0.4 s less at
+        # the tiny preset); the same algorithms on the same fields, so the same surfaces
+        from bonecap.parallel import fork_or_here
+
+        muscle_job = fork_or_here(lambda: _finish_surface(*fascia(), int(cfg["muscle_faces"]), "fascia", lean=lean),
+                                  beside=True)
+        skin = _finish_surface(*_dense_surface(S, origin, h, int(cfg["taubin_iterations"]), int(cfg["skin_faces"])),
+                               int(cfg["skin_faces"]), "skin", lean=lean)
+        muscle = muscle_job()
+        del S, Mu
     timings["meshes"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_all
     el = {s: plan.joints.get(f"elbow_{s}") for s in "rl"}
