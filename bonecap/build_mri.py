@@ -551,9 +551,24 @@ PLACED_MAX_SHIFT_MM = 60.0
 #: longer ran on into the carpals), so that end is always a cut for the warp (:func:`unseen_ends`), and the
 #: template's marrow is stretched to reach the extraction there
 #: (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``cover_marrow``). Not the radius: the template's marrow
-#: reaches within 2 mm of its styloid, so the cover never applies, and with the end cut the demo subject's
-#: radii had every RBF width fold and stayed 9-10 mm short (their tips within 1 mm without the cut).
+#: reaches within 2 mm of its styloid, so the cover never applies, and with the end cut alone the demo
+#: subject's radii had every RBF width fold and stayed 9-10 mm short (their tips within 1 mm without the
+#: cut); its end is cut with its length from its ulna (:data:`LENGTH_FROM`).
 MARROWLESS_ENDS = ("ulna",)
+
+#: The long bones whose warp is checked at its distal end against the length a measured neighbour gives
+#: them in the template's proportion, and warped again with that end cut to that length when it falls
+#: short (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``length_from``, :func:`distal_cuts`): the radius
+#: from its ulna. The radius's extraction ends 9-14 mm short of its styloid (where the cortical rule stops
+#: resolving its marrow at 1.8 mm pixels and 5 mm slices), and its tip was bistable in the warp: within
+#: 2 mm of the truth on 8 of 10 phantom radii, 7.2-7.3 mm short on two (the template's tip paired with the
+#: extraction's end cap). A cut alone (the radius as a marrowless end) left the affine's axial scale, set
+#: by that short end, to place the tip: 9.5-10.9 mm short on four radii. The ulna's tip, its marrow
+#: stretched to its extraction's end, lands within 1.5 mm on all ten; the radius's length from its affine
+#: is less sure (4.9 mm short to 4.2 mm long of the direct warp where that was right: the phantoms' radius
+#: and ulna vary on their own), so it is the fallback past a margin
+#: (:data:`bonecap.skeleton.warp.LENGTH_FROM_MARGIN_MM`), not the rule.
+LENGTH_FROM = {"radius": "ulna"}
 
 #: The long bones whose extraction, end to end, is a lower bound on their length: the warp stretches a
 #: template that falls short of it along the axis (:func:`bonecap.skeleton.warp.cover_extent`). The
@@ -561,7 +576,8 @@ MARROWLESS_ENDS = ("ulna",)
 #: its extent is no bound. A radius's or ulna's could run on into the carpals (9-28 mm past the bone on
 #: phantoms, before :func:`bonecap.segmentation.bones.defer_to_shaft_stacks` and the seed margin's gap
 #: limit); now their extractions end short of their styloids: the ulna's marrow covers its extraction
-#: (:data:`MARROWLESS_ENDS`), the radius's length is the template's proportion.
+#: (:data:`MARROWLESS_ENDS`), the radius's length is its ulna's in the template's proportion
+#: (:data:`LENGTH_FROM`).
 COVERED_EXTENTS = ("fibula",)
 
 
@@ -1040,6 +1056,9 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
                           tips=FOLLOWED_TIPS if seg_settings.get("follow_tips") else (),
                           # the template's lines run proximal -> distal; a user's may not
                           processes=MARROWLESS_ENDS if seeds is None else ()) if labels is None else {}
+        # the radius's distal end, which its extraction may end short of (LENGTH_FROM): cut only if its warp
+        # falls short of its ulna's length there (template lines run proximal -> distal; a user's may not)
+        ends = distal_cuts(targets, seed_map, vols, tuple(LENGTH_FROM)) if labels is None and seeds is None else {}
         personal, warp_report = warp_skeleton(posed, targets, init=np.eye(4) if placed_ok else None,
                                               start_from="placed" if placed_ok else "ancestor",
                                               max_turn_deg=35.0 if placed_ok else 45.0,
@@ -1047,7 +1066,9 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
                                               fixed=skull_fixed,
                                               unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None,
                                               cover=[n for n in targets if n[:-2] in COVERED_EXTENTS],
-                                              cover_marrow=[n for n in cut if n[:-2] in MARROWLESS_ENDS])
+                                              cover_marrow=[n for n in cut if n[:-2] in MARROWLESS_ENDS],
+                                              length_from={n: (LENGTH_FROM[n[:-2]] + n[-2:], h)
+                                                           for n, h in ends.items()})
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly
@@ -1598,6 +1619,44 @@ def unseen_ends(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: 
             cuts.append((u.copy(), float(ez.max()) - dz))
         if cuts:
             out[name] = cuts
+    return out
+
+
+def distal_cuts(extracted: dict[str, Mesh], seeds: dict[str, np.ndarray], vols: list[Volume],
+                bones: tuple[str, ...]) -> dict[str, list[tuple[np.ndarray, float]]]:
+    """The half-space past each named long bone's extraction's distal end (its last slice pitch), for the warp.
+
+    As :func:`unseen_ends` cuts a marrowless end (``processes``), but for the
+    bones whose extraction only *may* end short there: the warp cuts that end
+    when the bone's warp falls short of the length a neighbour gives it
+    (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``length_from``;
+    :data:`LENGTH_FROM`).
+
+    Parameters
+    ----------
+    extracted : dict of str -> Mesh
+        Extracted bone surfaces (LPS mm).
+    seeds : dict of str -> ndarray (N, 3)
+        Seed polylines, proximal to distal (LPS mm).
+    vols : list of Volume
+        The axial stations.
+    bones : tuple of str
+        Bone names without their side suffix.
+
+    Returns
+    -------
+    dict of str -> list of (normal, offset)
+        One half-space per bone (``normal . p > offset``, LPS), empty when the
+        stations' slice axes differ.
+    """
+    cuts = unseen_ends({n: m for n, m in extracted.items() if n[:-2] in bones}, seeds, vols, processes=bones)
+    out = {}
+    for name, hs in cuts.items():
+        line = np.asarray(seeds[name], float).reshape(-1, 3)
+        # the distal one, toward the polyline's last point (a search's cut at the proximal end may come with it)
+        distal = [(n, c) for n, c in hs if float((line[-1] - line[0]) @ n) > 0]
+        if distal:
+            out[name] = distal
     return out
 
 

@@ -854,6 +854,34 @@ def test_unseen_ends_mark_where_the_search_cut_a_long_bone():
     assert [np.round(n).tolist() for n, _ in cuts["radius_r"]] == [[0.0, 0.0, 1.0]]
 
 
+def test_distal_cuts_give_the_distal_end_only():
+    """distal_cuts: the half-space past the named bones' extraction's distal end (toward the seed line's last
+    point) only, also where the search cut the proximal end; other bones are left out."""
+    import trimesh
+
+    from bonecap.build_mri import distal_cuts
+    from bonecap.model import Mesh, Volume
+
+    A = np.diag([2.0, 2.0, 5.0, 1.0])
+    A[:3, 3] = [-100.0, -100.0, 0.0]
+    vols = [Volume(np.zeros((4, 4, 100), np.float32), A)]          # z 0..495
+
+    def rod(z_lo, z_hi):
+        box = trimesh.creation.box(extents=(20.0, 20.0, z_hi - z_lo))
+        return Mesh(np.asarray(box.vertices) + [0.0, 0.0, 0.5 * (z_lo + z_hi)], np.asarray(box.faces), "lps")
+
+    down = np.array([[0.0, 0.0, 300.0], [0.0, 0.0, 100.0]])        # proximal at the top
+    # the extraction reaches past the search's top (320): a search cut there, and the distal one
+    cuts = distal_cuts({"radius_r": rod(120.0, 330.0), "ulna_r": rod(120.0, 330.0)},
+                       {"radius_r": down, "ulna_r": down}, vols, ("radius",))
+    assert list(cuts) == ["radius_r"] and len(cuts["radius_r"]) == 1
+    n, c = cuts["radius_r"][0]
+    assert np.allclose(n, [0.0, 0.0, -1.0]) and c == pytest.approx(-(120.0 + 5.0))
+    cuts = distal_cuts({"radius_r": rod(120.0, 280.0)}, {"radius_r": down[::-1]}, vols, ("radius",))
+    n, c = cuts["radius_r"][0]
+    assert np.allclose(n, [0.0, 0.0, 1.0]) and c == pytest.approx(280.0 - 5.0)
+
+
 def test_no_mri_trunk_and_arms_against_the_truth(phantom, tmp_path):
     """The template scaled to the static trial alone (no MRI), animated: the spine scaled by its own
     length puts the trunk where the truth has it (the chest's scale factor had stood it 60 mm high on

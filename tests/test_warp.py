@@ -831,6 +831,70 @@ def test_a_bone_whose_extraction_ends_with_its_marrow_gets_its_tip_back():
     assert err[True] < 4.0, err
 
 
+def test_a_bone_short_of_its_neighbour_s_length_is_warped_again_to_it():
+    """A radius-like rod beside an ulna-like one, the subject's both 8 % longer, tops together. The ulna's
+    extraction is whole; the radius's ends 20 mm short of its tip (where its marrow stopped showing), but the
+    search went on past it, so nothing declares that end unseen. Plain, the warp takes the extraction's end
+    for the bone's and the tip comes out short; with ``length_from`` the warp is found short of the length
+    the ulna's warp gives the template radius, and is done again with that end cut and the affine stretched
+    to that length: the tip within a few mm. A radius whose extraction is whole is left as the plain warp
+    makes it; a neighbour without a target, or one that is not plausibly itself, lends nothing; names
+    outside the template are refused."""
+    from bonecap.skeleton.warp import LENGTH_FROM_MARGIN_MM
+
+    L, s, gap = 260.0, 1.08, 20.0
+    rod = _tapered_rod(L, radius=7.0, taper=20.0)
+    V, F = np.asarray(rod.vertices), np.asarray(rod.faces)
+    off = np.array([28.0, 0.0, 0.0])                         # the radius beside the ulna
+    T_r = np.eye(4)
+    T_r[:3, 3] = off
+    sk = Skeleton({"ulna": Bone("ulna", None, Mesh(V, F, "ulna"), np.eye(4), joint_centres={"elbow_u": [0, 0, L]}),
+                   "radius": Bone("radius", "ulna", Mesh(V, F, "radius"), T_r, joint_centres={"elbow_r": [0, 0, L]},
+                                  landmarks={"styloid": [0.0, 0.0, 0.5]})}, world="model")
+    tV = V * [1.0, 1.0, s] - [0, 0, (s - 1.0) * L]          # the subject: tips (s - 1) L = 20.8 mm lower
+    tip_z = float(tV[:, 2].min())
+    targets = {"ulna": Mesh(tV, F, "lps"), "radius": _kept_above(tV + off, F, tip_z + gap)}
+    end = [((0, 0, -1.0), -(tip_z + gap + 5.0))]             # the extraction's last pitch, toward its distal end
+    tip_true = off + [0.0, 0.0, 0.5 * s - (s - 1.0) * L]
+    err, reps = {}, {}
+    for on in (False, True):
+        personal, rep = warp_skeleton(sk, targets, init=np.eye(4), start_from="placed",
+                                      length_from={"radius": ("ulna", end)} if on else None)
+        err[on] = float(np.linalg.norm(personal.bones["radius"].landmark_in_world("styloid") - tip_true))
+        reps[on] = rep
+    bone = reps[True]["bones"]["radius"]
+    assert "length_from" not in reps[False]["bones"]["radius"] and "covered" not in reps[False]["bones"]["radius"]
+    assert bone["length_from"]["used"] and bone["length_from"]["short_mm"] > LENGTH_FROM_MARGIN_MM, bone
+    cov = bone["covered"]["neighbour"]
+    assert max(cov["lo_mm"], cov["hi_mm"]) > 5.0 and min(cov["lo_mm"], cov["hi_mm"]) == 0.0, cov   # the cut end only
+    assert cov["held_past_cut"] > 10 and len(bone["unseen"]) == 1
+    assert err[False] > 12.0, err                                   # 16.5 mm
+    assert err[True] < 4.0, err                                     # 2.6 mm
+    # the ulna's own warp is the same either way
+    assert np.allclose(reps[True]["transforms"]["ulna"], reps[False]["transforms"]["ulna"])
+    # the radius's whole extraction: its warp reaches the ulna's length, and stays the plain one
+    whole = {**targets, "radius": Mesh(tV + off, F, "lps")}
+    plain, _ = warp_skeleton(sk, whole, init=np.eye(4), start_from="placed")
+    checked, rep = warp_skeleton(sk, whole, init=np.eye(4), start_from="placed", length_from={"radius": ("ulna", end)})
+    assert not rep["bones"]["radius"]["length_from"]["used"]
+    # (the ulna's affine ICP on the tapered rod comes out 2.5 mm short: its RBF fits its own tip)
+    assert abs(rep["bones"]["radius"]["length_from"]["short_mm"]) < 3.0, rep["bones"]["radius"]["length_from"]
+    assert np.allclose(checked.bones["radius"].mesh.vertices, plain.bones["radius"].mesh.vertices)
+    # no target for the neighbour: nothing to take the length from
+    _, rep = warp_skeleton(sk, {"radius": targets["radius"]}, init=np.eye(4), start_from="placed",
+                           length_from={"radius": ("ulna", end)})
+    assert rep["bones"]["radius"]["length_from"] == {"neighbour": "ulna", "short_mm": None, "used": False}
+    # a neighbour whose fit is implausible (its target turned 90 deg: another bone) lends nothing
+    turned = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    bad = {**targets, "ulna": Mesh(tV @ turned.T, F, "lps")}
+    _, rep = warp_skeleton(sk, bad, init=np.eye(4), start_from="placed", max_turn_deg=35.0,
+                           length_from={"radius": ("ulna", end)})
+    assert rep["bones"]["ulna"]["source"] != "own target"
+    assert not rep["bones"]["radius"]["length_from"]["used"]
+    with pytest.raises(ValueError, match="length_from"):
+        warp_skeleton(sk, targets, init=np.eye(4), length_from={"radius": ("nosuchbone", end)})
+
+
 def test_a_slender_bone_s_affine_is_a_rigid_motion_with_two_scales():
     """A fibula-like rod (a flattened section with a knob at its tip, so that its turn is held) turned,
     moved, 5 % longer and 8 % thicker: ``axial_icp`` from the rigid fit, untrimmed, recovers the map (its

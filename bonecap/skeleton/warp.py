@@ -796,6 +796,14 @@ def cover_extent(T: np.ndarray, src_world: np.ndarray, target_vertices: np.ndarr
     return S @ T, {"lo_mm": round(lo - new_lo, 2), "hi_mm": round(new_hi - hi, 2), "stretch": round(a, 4)}
 
 
+#: How far (mm) a bone's warp may end short of the length its ``length_from`` neighbour gives it before it
+#: is warped again with that end cut and the neighbour's length (:func:`warp_skeleton`). Both estimates
+#: have their spread. On ten phantom radii (seeds 0-2, both protocols) the direct warp ended within 2 mm of
+#: the true tip on eight and 7.2-7.3 mm short on two (the template's tip paired with the extraction's end
+#: cap, 9-14 mm short of the styloid); the ulna's affine put the radius's end 4.9 mm nearer to 4.2 mm
+#: farther than the direct warp where that was right, 6.7 and 8.6 mm farther where it was not.
+LENGTH_FROM_MARGIN_MM = 5.5
+
 #: The trimmed ICP's kept fraction for :func:`_warp_one`'s second rigid start (elongated bones).
 TRIMMED_START = 0.9
 #: How much smaller (fraction) the second start's affine residual must be to replace the first.
@@ -812,7 +820,8 @@ def _long_axis(points: np.ndarray) -> np.ndarray | None:
 def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surface, init: np.ndarray,
               n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
               n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray,
-              cover: bool = False, marrow: np.ndarray | None = None) -> dict[str, Any]:
+              cover: bool = False, marrow: np.ndarray | None = None,
+              reach: np.ndarray | None = None) -> dict[str, Any]:
     """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
 
     An elongated bone gets a second rigid start, trimmed (:data:`TRIMMED_START`), whose affine
@@ -822,7 +831,9 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     inner surface vertices. ``cover``: stretch the affine along the bone's axis to its target's extent
     (:func:`cover_extent`); the plain affine ICP stays the affine-only baseline (``T_affine_icp``).
     ``marrow`` (template world, the bone's inner surface's vertices): stretch the affine so that the
-    marrow reaches the extraction's cut ends (``target.unseen``; :func:`cover_extent`'s ``directions``)."""
+    marrow reaches the extraction's cut ends (``target.unseen``; :func:`cover_extent`'s ``directions``).
+    ``reach`` (target world, the bone's vertices where a measured neighbour's warp puts them): stretch
+    the affine so that the bone reaches as far as that at its cut ends (``warp_skeleton``'s ``length_from``)."""
     sub = src_world[np.linspace(0, len(src_world) - 1, min(n_icp, len(src_world))).astype(int)]
     # The rigid stage keeps every pair (no trimming): a long bone placed off along its own axis -- a
     # template shorter or longer than the subject's -- is held there only by its ends, and the pairs at
@@ -859,15 +870,35 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         T_aff, covered_m = cover_extent(T_aff, marrow, target.mesh.vertices, directions=[n for n, _ in target.unseen])
         if covered_m is not None:
             covered = {**(covered or {}), "marrow": covered_m}
+    if reach is not None and len(target.unseen):
+        # past a cut nothing of the extraction holds the bone's length but the affine's axial scale, which
+        # the extraction's short end sets: the neighbour's warp says how far the bone goes on there
+        T_aff, covered_n = cover_extent(T_aff, src_world, reach, directions=[n for n, _ in target.unseen])
+        if covered_n is not None:
+            covered = {**(covered or {}), "neighbour": covered_n}
     base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
     extent = float(np.ptp(base.vertices, axis=0).max())
     spacing = float(np.sqrt(base.to_trimesh().area / max(n_features, 8)))
     widths = list(widths) if widths else _default_widths(extent, spacing)
+    held = np.zeros((0, 3))
+    if covered is not None and "neighbour" in covered:
+        # The RBF's own linear part is fitted to the feature points, all short of the cut: it re-takes the
+        # axial scale the extraction's short end sets, and its extrapolation past the cut pulled a tip the
+        # neighbour's stretch had placed 7 mm back (the demo subject's left radius, cut and stretched). Past
+        # the cut the stretched affine is the estimate: the bone's vertices there, one a feature spacing
+        # apart, are held where it puts them. (Not when the cut affine reached the neighbour's length by
+        # itself: on the two radii where that was so, holding moved the wrist's centre 0.4 mm farther off
+        # and the styloid 0.5 mm, against the RBF's extrapolation.)
+        past = base.vertices[~target.seen(base.vertices)]
+        _, first = np.unique(np.floor(past / spacing).astype(np.int64), axis=0, return_index=True)
+        held = past[np.sort(first)]
+        covered["neighbour"]["held_past_cut"] = int(len(held))
     current = base
     warp = None
     for it, w in enumerate(widths):
         faces_i, bary, dst = _correspondences(current, target, n_features, 60.0, seed + 7 * it)
         src = np.einsum("nk,nkd->nd", bary, base.vertices[base.faces[faces_i]])
+        src, dst = np.concatenate([src, held]), np.concatenate([dst, held])
         # a fold comes from a few contradicting correspondences (a neck or a crest the affine left
         # apart): more smoothing lets the fit pass them by; the residual check still guards the fit
         cand, why = None, ""
@@ -919,7 +950,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   max_turn_deg: float = 45.0, max_affine_residual_mm: float = 6.0,
                   start_from: str = "ancestor", max_shift_mm: float = np.inf,
                   rigid_bodies=None, fixed=None, unseen=None,
-                  refine_chain=None, cover=(), cover_marrow=()) -> tuple[Skeleton, dict[str, Any]]:
+                  refine_chain=None, cover=(), cover_marrow=(),
+                  length_from=None) -> tuple[Skeleton, dict[str, Any]]:
     """The personal skeleton: every template bone warped onto its target (affine + Gaussian RBF).
 
     Per bone with a target mesh, in parent-before-child order: rigid ICP
@@ -1029,6 +1061,25 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         along the axis to reach the extraction there (report: ``covered``'s
         ``marrow``). build-subject gives the ulnae, whose styloids hold no
         marrow.
+    length_from : dict of str -> (str, sequence of (normal (3,), offset)), optional
+        Bone -> (a neighbour with its own target, half-spaces): the bone's
+        extraction may end short of the bone past those half-spaces (an end
+        the slice rules do not resolve), and the neighbour's warp of the
+        template bone (its vertices mapped with the neighbour's map: the
+        template's proportion to the neighbour) says how far it goes on. The
+        bone is warped as usual; where its warp then ends more than
+        :data:`LENGTH_FROM_MARGIN_MM` short of the neighbour's (along its axis,
+        toward the half-spaces), it is warped again with that end cut (the
+        half-spaces added to ``unseen``), its affine stretched to the
+        neighbour's length there where it falls short of it
+        (:func:`cover_extent`) and then its vertices past the cut held where
+        that affine puts them. Report: ``length_from``
+        (``neighbour``, ``short_mm``, ``used``) and, when used, ``covered``'s
+        ``neighbour`` (the stretch, when the cut bone's affine fell short of
+        the neighbour's length by more than :func:`cover_extent`'s 2 mm, and
+        ``held_past_cut``, the vertices then held). Only where the neighbour's
+        own warp is plausible.
+        build-subject gives each radius its ulna (:data:`bonecap.build_mri.LENGTH_FROM`).
     start_from : {"ancestor", "placed"}
         Where each bone's rigid ICP starts: from its nearest warped ancestor's
         result (a template in another pose than the targets), or from
@@ -1100,7 +1151,51 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     rigid_of: dict[str, np.ndarray] = {}
     index = {name: i for i, name in enumerate(template.bones)}
 
-    def warp_bone(name: str, start: np.ndarray, prior: float) -> dict[str, Any]:
+    length_from = {b: (nb, _check_unseen(h)) for b, (nb, h) in (length_from or {}).items()}
+    unknown = sorted(b for b, (nb, _) in length_from.items() for b in (b, nb) if b not in template.bones)
+    if unknown:
+        raise ValueError(f"length_from names bones that are not in the template: {unknown}")
+
+    def reach_of(name: str, done_so_far: dict[str, dict[str, Any]],
+                 start: np.ndarray | None = None) -> np.ndarray | None:
+        """The bone's template vertices where its ``length_from`` neighbour's warp puts them (or None);
+        ``start``: the neighbour's, to check its result (results not checked yet)."""
+        nb = length_from[name][0] if name in length_from else None
+        r = done_so_far.get(nb)
+        if r is None or (start is not None and _implausible(
+                start, r, max_turn_deg, max_affine_residual_mm,
+                _apply(template.bones[nb].bone_to_world, template.bones[nb].mesh.vertices).mean(axis=0),
+                max_shift_mm)):
+            return None
+        # the neighbour's affine, not its RBF: the template's proportion, without the local corrections of
+        # the neighbour's own surface (whose kernels reach a few cm across to this bone)
+        bone = template.bones[name]
+        return _apply(r["T_affine"], _apply(bone.bone_to_world, bone.mesh.vertices))
+
+    def short_of(name: str, r: dict[str, Any], reach: np.ndarray) -> float:
+        """How far (mm) the bone's warp ``r`` ends short of ``reach`` along its axis, toward its length cut."""
+        bone = template.bones[name]
+        p = _apply(bone.bone_to_world, bone.mesh.vertices)
+        got = r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
+        u = _long_axis(reach)
+        if u is None:
+            return 0.0
+        toward = np.mean([n for n, _ in length_from[name][1]], axis=0)
+        u = u if u @ toward >= 0 else -u
+        return float((reach @ u).max() - (got @ u).max())
+
+    def length_check(name: str, r: dict[str, Any], done_so_far: dict[str, dict[str, Any]],
+                     start: np.ndarray | None) -> tuple[np.ndarray | None, dict[str, Any]]:
+        """``(reach, report)``: the neighbour's reach when the bone's warp falls short of it, else None."""
+        reach = reach_of(name, done_so_far, start)
+        if reach is None:
+            return None, {"neighbour": length_from[name][0], "short_mm": None, "used": False}
+        short = short_of(name, r, reach)
+        rep = {"neighbour": length_from[name][0], "short_mm": round(short, 2), "used": short > LENGTH_FROM_MARGIN_MM}
+        return (reach if rep["used"] else None), rep
+
+    def warp_bone(name: str, start: np.ndarray, prior: float, reach: np.ndarray | None = None) -> dict[str, Any]:
+        """One bone's warp; with ``reach``, its ``length_from`` end cut and stretched to it."""
         bone = template.bones[name]
         src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
         inner = None if bone.inner_mesh is None else _apply(bone.bone_to_world, bone.inner_mesh.vertices)
@@ -1108,11 +1203,14 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
         # checks them all
         check = check[::2]
-        return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], cuts.get(name, ())), start,
+        unseen_here = list(cuts.get(name, ())) + (list(length_from[name][1]) if reach is not None else [])
+        return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], unseen_here), start,
                          n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
-                         check, cover=name in cover, marrow=inner if name in cover_marrow else None)
+                         check, cover=name in cover, marrow=inner if name in cover_marrow else None,
+                         reach=reach)
 
+    checks: dict[str, tuple[np.ndarray | None, dict[str, Any]]] = {}
     if start_from == "placed":
         # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
         # starts every bone where it is -- an ancestor's ICP error must not tilt its children -- so
@@ -1120,6 +1218,10 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # workers finish together (each bone's sampling seed is its own: the same result in any order)
         todo = sorted(own, key=lambda n: -len(template.bones[n].mesh.vertices))
         done = dict(zip(todo, fork_map(lambda n: warp_bone(n, init, rotation_prior), todo)))
+        # a bone that ended short of its length_from neighbour's length: again, its end cut, in a second round
+        checks = {n: length_check(n, done[n], done, init) for n in own if n in length_from}
+        again = [n for n, (reach, _) in checks.items() if reach is not None]
+        done.update(zip(again, fork_map(lambda n: warp_bone(n, init, rotation_prior, checks[n][0]), again)))
     for name, bone in template.bones.items():
         if name not in targets or bone.mesh is None:
             continue
@@ -1134,6 +1236,11 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 a = template.bones[a].parent
             start = init if a is None else rigid_of[a]
             r = warp_bone(name, start, rotation_prior if a is not None else 0.0)
+            if name in length_from:
+                # (results holds the plausible warps only; a neighbour later in the template's order is not used)
+                checks[name] = length_check(name, r, results, None)
+                if checks[name][0] is not None:
+                    r = warp_bone(name, start, rotation_prior if a is not None else 0.0, checks[name][0])
         # a target that only fits the bone turned over or stretched is not this
         # bone (two bones merged, a neighbour taken for it): carry the bone from
         # its neighbours instead of warping it onto the wrong shape
@@ -1385,8 +1492,12 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
             }
             if r.get("covered"):
                 report_bones[name]["covered"] = r["covered"]
-            if cuts.get(name):
-                report_bones[name]["unseen"] = [[*np.round(n, 4).tolist(), round(c, 2)] for n, c in cuts[name]]
+            if name in checks:
+                report_bones[name]["length_from"] = checks[name][1]
+            cut_here = list(cuts.get(name, ())) + (list(length_from[name][1]) if checks.get(name, (None, {}))[1]
+                                                   .get("used") else [])
+            if cut_here:
+                report_bones[name]["unseen"] = [[*np.round(n, 4).tolist(), round(c, 2)] for n, c in cut_here]
         else:
             report_bones[name] = {"source": ("fixed (given)" if name in fixed else
                                              "placed template (neighbours' joints out of bounds)"
