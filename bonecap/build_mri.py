@@ -1067,8 +1067,10 @@ def _build_from_mri(mri, *, generic, marker_set, static, forearm_poses, seeds, l
                                               unseen=cut, refine_chain=_spine_from_discs(vols, spine_qc) if vols else None,
                                               cover=[n for n in targets if n[:-2] in COVERED_EXTENTS],
                                               cover_marrow=[n for n in cut if n[:-2] in MARROWLESS_ENDS],
+                                              # (a template without the neighbour, an .osim one: no check)
                                               length_from={n: (LENGTH_FROM[n[:-2]] + n[-2:], h)
-                                                           for n, h in ends.items()})
+                                                           for n, h in ends.items()
+                                                           if LENGTH_FROM[n[:-2]] + n[-2:] in posed.bones})
     else:
         # nothing extracted well enough to warp onto (coarse or partial images):
         # the template as placed on the body is all there is -- said loudly

@@ -184,7 +184,8 @@ def test_run_beside_returns_the_childs_result_and_raises_its_error(monkeypatch):
 def test_trials_made_after_the_subject_equal_the_trials_made_beside_the_mri(phantom, tmp_path, monkeypatch):
     """The default preset makes its trials after the subject, in a child that ends before the MRI starts
     (its memory target), the tiny one in a child beside the MRI: the same C3D files and truth poses
-    either way."""
+    either way. Likewise its forearm stacks, after the stations in this process or beside them in a
+    child (their own random stream): the same images and truth."""
     import os
 
     import bonecap.phantom.trials as trials_module
@@ -200,9 +201,15 @@ def test_trials_made_after_the_subject_equal_the_trials_made_beside_the_mri(phan
     monkeypatch.setattr(trials_module, "make_trials", recorded)
     monkeypatch.delenv("BONECAP_WORKERS", raising=False)
     monkeypatch.setitem(PRESETS["tiny"], "trials_beside", False)
+    monkeypatch.setitem(PRESETS["tiny"], "forearm_beside", False)
     out = tmp_path / "here"
     make_phantom(out, seed=3, preset="tiny", marker_capsules=True)
     assert int(pids.read_text()) != os.getpid()
+    assert json.loads((out / "truth/forearm.json").read_text()) == json.loads(
+        (phantom / "truth/forearm.json").read_text())
+    for stack in sorted((phantom / "mri").glob("forearm_*")):
+        a, b = read_dicom_series(stack)[0], read_dicom_series(out / "mri" / stack.name)[0]
+        assert np.array_equal(a.data, b.data) and np.allclose(a.affine, b.affine), stack.name
     c3ds = sorted(p.name for p in (phantom / "trials").glob("*.c3d"))
     assert len(c3ds) >= 5 and c3ds == sorted(p.name for p in (out / "trials").glob("*.c3d"))
     for name in c3ds:
@@ -212,6 +219,29 @@ def test_trials_made_after_the_subject_equal_the_trials_made_beside_the_mri(phan
         assert a.files == b.files
         for k in a.files:
             np.testing.assert_array_equal(a[k], b[k], err_msg=f"{f.name}:{k}")
+
+
+def test_a_failure_stops_the_children_writing(tmp_path, monkeypatch):
+    """The trials and the forearm stacks run in forked children beside the stations (tiny preset): when
+    the stations fail, make_phantom raises and the children are stopped, not left writing into OUT_DIR."""
+    import multiprocessing as mp
+    import time
+
+    import bonecap.phantom.mri as mri_module
+    from bonecap.phantom import make_phantom
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the stations failed")
+
+    monkeypatch.setattr(mri_module, "render_stations", broken)
+    monkeypatch.setenv("BONECAP_WORKERS", "2")
+    out = tmp_path / "p"
+    with pytest.raises(RuntimeError, match="stations failed"):
+        make_phantom(out, seed=1, preset="tiny")
+    assert mp.active_children() == []
+    written = sorted(str(f) for f in out.rglob("*"))
+    time.sleep(2.0)                                  # nothing goes on writing
+    assert sorted(str(f) for f in out.rglob("*")) == written
 
 
 def test_forearm_stage_on_the_stacks_truth(phantom):

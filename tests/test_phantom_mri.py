@@ -502,9 +502,11 @@ def test_nifti_written_in_slabs_is_byte_identical(tmp_path):
     assert not (tmp_path / "c.nii").exists()
 
 
-def test_dicom_series_bytes_are_pydicoms_from_scratch(tmp_path):
-    """``write_dicom_series`` re-encodes only the per-slice elements of a template; every file must be
-    the bytes pydicom writes for the same elements built from scratch (no stale value from slice 1)."""
+@pytest.mark.parametrize("kind", ["uint16", "int16", "float_rescaled"])
+def test_dicom_series_bytes_are_pydicoms_from_scratch(tmp_path, kind):
+    """``write_dicom_series`` encodes a series' constant elements once and each file's changing ones in
+    between; every file must be the bytes pydicom writes for the same elements built from scratch (no
+    stale value from slice 1), for unsigned, signed and rescaled (float) data."""
     import io
 
     import pydicom
@@ -515,9 +517,14 @@ def test_dicom_series_bytes_are_pydicoms_from_scratch(tmp_path):
     from bonecap.io.imaging import write_dicom_series
     from bonecap.model import Volume
 
-    data = np.random.default_rng(4).integers(0, 3000, (24, 20, 4)).astype(np.uint16)
-    vol = Volume(data, _grid((1.5, 1.7, 5.0), (-10.0, 20.0, 30.0)), {"patient_name": "Ph^X", "slice_thickness": 4.0})
-    files = write_dicom_series(vol, tmp_path / "s", rescale=False, series_number=3)
+    rng = np.random.default_rng(4)
+    data = {"uint16": rng.integers(0, 3000, (24, 20, 4)).astype(np.uint16),
+            "int16": rng.integers(-1000, 3000, (24, 20, 4)).astype(np.int16),
+            "float_rescaled": rng.normal(100.0, 30.0, (24, 20, 4))}[kind]
+    vol = Volume(data, _grid((1.5, 1.7, 5.0), (-10.0, 20.0, 30.0)), {"patient_name": "Ph^X", "slice_thickness": 4.0,
+                                                                     "echo_number": 2, "echo_time": 12.5})
+    files = write_dicom_series(vol, tmp_path / "s", rescale=kind == "float_rescaled", series_number=3,
+                               modality="CT" if kind == "int16" else "MR")
     seen = set()
     for k, f in enumerate(files):
         ds = pydicom.dcmread(f)
@@ -534,7 +541,11 @@ def test_dicom_series_bytes_are_pydicoms_from_scratch(tmp_path):
         # the per-slice elements are this slice's
         assert int(ds.InstanceNumber) == k + 1
         assert np.allclose([float(v) for v in ds.ImagePositionPatient], vol.affine[:3, :3] @ [0, 0, k] + vol.affine[:3, 3])
-        assert np.array_equal(ds.pixel_array, data[:, :, k].T)
+        if kind == "float_rescaled":
+            got = ds.pixel_array * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
+            assert np.allclose(got, data[:, :, k].T, atol=float(ds.RescaleSlope))
+        else:
+            assert np.array_equal(ds.pixel_array, data[:, :, k].T)
         assert ds.SOPInstanceUID == ds.file_meta.MediaStorageSOPInstanceUID
         seen.add(ds.SOPInstanceUID)
     assert len(seen) == len(files)

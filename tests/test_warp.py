@@ -883,7 +883,8 @@ def test_a_bone_short_of_its_neighbour_s_length_is_warped_again_to_it():
     # no target for the neighbour: nothing to take the length from
     _, rep = warp_skeleton(sk, {"radius": targets["radius"]}, init=np.eye(4), start_from="placed",
                            length_from={"radius": ("ulna", end)})
-    assert rep["bones"]["radius"]["length_from"] == {"neighbour": "ulna", "short_mm": None, "used": False}
+    lf = rep["bones"]["radius"]["length_from"]
+    assert lf["short_mm"] is None and not lf["used"] and "no plausible warp of ulna" in lf["why"]
     # a neighbour whose fit is implausible (its target turned 90 deg: another bone) lends nothing
     turned = Rotation.from_euler("x", 90, degrees=True).as_matrix()
     bad = {**targets, "ulna": Mesh(tV @ turned.T, F, "lps")}
@@ -893,6 +894,25 @@ def test_a_bone_short_of_its_neighbour_s_length_is_warped_again_to_it():
     assert not rep["bones"]["radius"]["length_from"]["used"]
     with pytest.raises(ValueError, match="length_from"):
         warp_skeleton(sk, targets, init=np.eye(4), length_from={"radius": ("nosuchbone", end)})
+    with pytest.raises(ValueError, match="half-space"):
+        warp_skeleton(sk, targets, init=np.eye(4), length_from={"radius": ("ulna", [])})
+    # the same from the ancestor path (the ulna, its parent, warped first)
+    personal, rep = warp_skeleton(sk, targets, init=np.eye(4), start_from="ancestor",
+                                  length_from={"radius": ("ulna", end)})
+    assert rep["bones"]["radius"]["length_from"]["used"]
+    assert np.linalg.norm(personal.bones["radius"].landmark_in_world("styloid") - tip_true) < 4.0
+    # another cut on the bone (its search ended past the proximal end too) is no length cut: with an ulna
+    # standing 8 mm higher, only the distal end is stretched and held, and the radius's proximal joint stays
+    # on the subject's (taken for a length cut, the top had been stretched 8.3 mm up too)
+    top = [((0, 0, 1.0), float(tV[:, 2].max()) - 5.0)]
+    higher = {**targets, "ulna": Mesh(tV + [0.0, 0.0, 8.0], F, "lps")}
+    both, rep = warp_skeleton(sk, higher, init=np.eye(4), start_from="placed", unseen={"radius": top},
+                              length_from={"radius": ("ulna", end)})
+    bone = rep["bones"]["radius"]
+    assert bone["length_from"]["used"] and len(bone["unseen"]) == 2
+    cov = bone["covered"]["neighbour"]
+    assert max(cov["lo_mm"], cov["hi_mm"]) > 5.0 and min(cov["lo_mm"], cov["hi_mm"]) == 0.0, cov
+    assert np.linalg.norm(both.bones["radius"].landmark_in_world("elbow_r") - (off + [0.0, 0.0, L])) < 1.0
 
 
 def test_a_slender_bone_s_affine_is_a_rigid_motion_with_two_scales():

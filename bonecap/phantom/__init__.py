@@ -214,7 +214,8 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     outputs are the same wherever they run. ``BONECAP_WORKERS=1`` keeps
     everything in one process. ``timings_s["trials"]`` and ``["forearm"]`` are
     the stages' own times, ``trials_wait`` and ``forearm_wait`` what was left to
-    wait for when a child made them, ``wall_s`` the whole run.
+    wait for when they were joined (~0 when they ran in this process), ``wall_s``
+    the whole run. A failure stops the children (they are not left writing).
 
     Parameters
     ----------
@@ -245,6 +246,19 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     dict
         The summary also written to ``phantom.json``.
     """
+    # the trials and (tiny preset) the forearm stacks run in forked children: if anything fails
+    # meanwhile, they are stopped, not left writing into OUT_DIR after the error
+    children: list = []
+    try:
+        return _make_phantom(out_dir, seed, stature_mm, generic, preset, marker_capsules, children)
+    except BaseException:
+        for join in children:
+            getattr(join, "cancel", lambda: None)()
+        raise
+
+
+def _make_phantom(out_dir, seed, stature_mm, generic, preset, marker_capsules, children: list) -> dict[str, Any]:
+    """:func:`make_phantom`'s work; the joins of the children it forks are appended to ``children``."""
     from bonecap.markers import load_marker_set
     from bonecap.phantom.mri import (CAPSULE_DIAMETER_MM, FOREARM_EXTEND_MM, ForearmPose, capsule_meshes,
                                      icosphere, plan_stations, render_forearm_stacks, render_stations,
@@ -303,6 +317,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
 
     if cfg["trials_beside"]:
         trials_job = run_beside(trials_stage)
+        children.append(trials_job)
     else:
         from bonecap.parallel import fork_or_here
 
@@ -405,6 +420,7 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
 
     if cfg["forearm_beside"]:
         forearm_job = run_beside(forearm_stage)
+        children.append(forearm_job)
 
     capsule_truth = None
     if marker_capsules:
@@ -445,7 +461,6 @@ def make_phantom(out_dir: str | os.PathLike, *, seed: int = 0, stature_mm: float
     else:
         forearm_truth, capsule_radius_mm, forearm_stacks, timings["forearm"] = forearm_stage()
     bar.update()
-
 
     # 4. Trials (started beside the MRI above).
     tidy()

@@ -821,7 +821,7 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
               n_features: int, widths: list[float] | None, smoothing: float, max_residual_mm: float,
               n_icp: int, seed: int, rotation_prior: float, check_pts: np.ndarray,
               cover: bool = False, marrow: np.ndarray | None = None,
-              reach: np.ndarray | None = None) -> dict[str, Any]:
+              reach: tuple[np.ndarray, list] | None = None) -> dict[str, Any]:
     """rigid ICP -> affine ICP -> coarse-to-fine RBF for one bone; template world -> target world.
 
     An elongated bone gets a second rigid start, trimmed (:data:`TRIMMED_START`), whose affine
@@ -832,8 +832,10 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
     (:func:`cover_extent`); the plain affine ICP stays the affine-only baseline (``T_affine_icp``).
     ``marrow`` (template world, the bone's inner surface's vertices): stretch the affine so that the
     marrow reaches the extraction's cut ends (``target.unseen``; :func:`cover_extent`'s ``directions``).
-    ``reach`` (target world, the bone's vertices where a measured neighbour's warp puts them): stretch
-    the affine so that the bone reaches as far as that at its cut ends (``warp_skeleton``'s ``length_from``)."""
+    ``reach`` ``(points, half-spaces)``: the bone's vertices where a measured neighbour's affine puts them
+    (target world) and the half-spaces of the end cut for it (also in ``target.unseen``): stretch the affine
+    so that the bone reaches as far as those points toward that cut, and hold it there past the cut
+    (``warp_skeleton``'s ``length_from``; the target's other cuts play no part in it)."""
     sub = src_world[np.linspace(0, len(src_world) - 1, min(n_icp, len(src_world))).astype(int)]
     # The rigid stage keeps every pair (no trimming): a long bone placed off along its own axis -- a
     # template shorter or longer than the subject's -- is held there only by its ends, and the pairs at
@@ -870,10 +872,12 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         T_aff, covered_m = cover_extent(T_aff, marrow, target.mesh.vertices, directions=[n for n, _ in target.unseen])
         if covered_m is not None:
             covered = {**(covered or {}), "marrow": covered_m}
-    if reach is not None and len(target.unseen):
+    length_cut = _Surface.__new__(_Surface)       # only its seen(): the length cut's half-spaces alone
+    length_cut.unseen = [] if reach is None else _check_unseen(reach[1])
+    if reach is not None and length_cut.unseen:
         # past a cut nothing of the extraction holds the bone's length but the affine's axial scale, which
-        # the extraction's short end sets: the neighbour's warp says how far the bone goes on there
-        T_aff, covered_n = cover_extent(T_aff, src_world, reach, directions=[n for n, _ in target.unseen])
+        # the extraction's short end sets: the neighbour's affine says how far the bone goes on there
+        T_aff, covered_n = cover_extent(T_aff, src_world, reach[0], directions=[n for n, _ in length_cut.unseen])
         if covered_n is not None:
             covered = {**(covered or {}), "neighbour": covered_n}
     base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
@@ -885,11 +889,11 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         # The RBF's own linear part is fitted to the feature points, all short of the cut: it re-takes the
         # axial scale the extraction's short end sets, and its extrapolation past the cut pulled a tip the
         # neighbour's stretch had placed 7 mm back (the demo subject's left radius, cut and stretched). Past
-        # the cut the stretched affine is the estimate: the bone's vertices there, one a feature spacing
-        # apart, are held where it puts them. (Not when the cut affine reached the neighbour's length by
-        # itself: on the two radii where that was so, holding moved the wrist's centre 0.4 mm farther off
-        # and the styloid 0.5 mm, against the RBF's extrapolation.)
-        past = base.vertices[~target.seen(base.vertices)]
+        # the cut the stretched affine is the estimate: the bone's vertices there, about a feature spacing
+        # apart (one per cube of that size), are held where it puts them. (Not when the cut affine reached
+        # the neighbour's length by itself: on the two radii where that was so, holding moved the wrist's
+        # centre 0.4 mm farther off and the styloid 0.5 mm, against the RBF's extrapolation.)
+        past = base.vertices[~length_cut.seen(base.vertices)]
         _, first = np.unique(np.floor(past / spacing).astype(np.int64), axis=0, return_index=True)
         held = past[np.sort(first)]
         covered["neighbour"]["held_past_cut"] = int(len(held))
@@ -1152,9 +1156,12 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     index = {name: i for i, name in enumerate(template.bones)}
 
     length_from = {b: (nb, _check_unseen(h)) for b, (nb, h) in (length_from or {}).items()}
-    unknown = sorted(b for b, (nb, _) in length_from.items() for b in (b, nb) if b not in template.bones)
+    named = {b for b, (nb, _) in length_from.items()} | {nb for nb, _ in length_from.values()}
+    unknown = sorted(n for n in named if n not in template.bones)
     if unknown:
         raise ValueError(f"length_from names bones that are not in the template: {unknown}")
+    if any(not h for _, h in length_from.values()):
+        raise ValueError("length_from needs at least one half-space per bone (the end it may fall short at)")
 
     def reach_of(name: str, done_so_far: dict[str, dict[str, Any]],
                  start: np.ndarray | None = None) -> np.ndarray | None:
@@ -1180,22 +1187,25 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         u = _long_axis(reach)
         if u is None:
             return 0.0
-        toward = np.mean([n for n, _ in length_from[name][1]], axis=0)
-        u = u if u @ toward >= 0 else -u
-        return float((reach @ u).max() - (got @ u).max())
+        # each half-space's end (a bone cut at both ends: the larger shortfall)
+        return max(float((reach @ v).max() - (got @ v).max())
+                   for v in (u if u @ n >= 0 else -u for n, _ in length_from[name][1]))
 
     def length_check(name: str, r: dict[str, Any], done_so_far: dict[str, dict[str, Any]],
                      start: np.ndarray | None) -> tuple[np.ndarray | None, dict[str, Any]]:
         """``(reach, report)``: the neighbour's reach when the bone's warp falls short of it, else None."""
+        nb = length_from[name][0]
         reach = reach_of(name, done_so_far, start)
         if reach is None:
-            return None, {"neighbour": length_from[name][0], "short_mm": None, "used": False}
+            return None, {"neighbour": nb, "short_mm": None, "used": False,
+                          "why": f"no plausible warp of {nb} (no target, rejected, or not warped before {name})"}
         short = short_of(name, r, reach)
-        rep = {"neighbour": length_from[name][0], "short_mm": round(short, 2), "used": short > LENGTH_FROM_MARGIN_MM}
-        return (reach if rep["used"] else None), rep
+        rep = {"neighbour": nb, "short_mm": round(short, 2), "used": short > LENGTH_FROM_MARGIN_MM}
+        return ((reach, length_from[name][1]) if rep["used"] else None), rep
 
-    def warp_bone(name: str, start: np.ndarray, prior: float, reach: np.ndarray | None = None) -> dict[str, Any]:
-        """One bone's warp; with ``reach``, its ``length_from`` end cut and stretched to it."""
+    def warp_bone(name: str, start: np.ndarray, prior: float,
+                  reach: tuple[np.ndarray, list] | None = None) -> dict[str, Any]:
+        """One bone's warp; with ``reach`` (:func:`length_check`'s), its ``length_from`` end cut and stretched to it."""
         bone = template.bones[name]
         src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
         inner = None if bone.inner_mesh is None else _apply(bone.bone_to_world, bone.inner_mesh.vertices)
@@ -1203,14 +1213,25 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
         # checks them all
         check = check[::2]
-        unseen_here = list(cuts.get(name, ())) + (list(length_from[name][1]) if reach is not None else [])
+        unseen_here = list(cuts.get(name, ())) + (list(reach[1]) if reach is not None else [])
         return _warp_one(name, src_world, bone.mesh.faces, _Surface(targets[name], unseen_here), start,
                          n_features,
                          kernel_widths_mm, smoothing, max_residual_mm, 800, seed + 101 * index[name], prior,
                          check, cover=name in cover, marrow=inner if name in cover_marrow else None,
                          reach=reach)
 
-    checks: dict[str, tuple[np.ndarray | None, dict[str, Any]]] = {}
+    checks: dict[str, tuple[tuple[np.ndarray, list] | None, dict[str, Any]]] = {}
+
+    def checked(name: str, first: dict[str, Any], again: dict[str, Any], start: np.ndarray) -> dict[str, Any]:
+        """The warp with the length cut, ``again``, unless it is not plausibly the bone: then ``first``."""
+        bone = template.bones[name]
+        why = _implausible(start, again, max_turn_deg, max_affine_residual_mm,
+                           _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0), max_shift_mm)
+        if not why:
+            return again
+        checks[name][1].update(used=False, why=f"the warp with the cut end was rejected ({why}); the first kept")
+        return first
+
     if start_from == "placed":
         # a template already placed bone by bone (build-subject poses its limbs toward the MRI's)
         # starts every bone where it is -- an ancestor's ICP error must not tilt its children -- so
@@ -1221,7 +1242,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # a bone that ended short of its length_from neighbour's length: again, its end cut, in a second round
         checks = {n: length_check(n, done[n], done, init) for n in own if n in length_from}
         again = [n for n, (reach, _) in checks.items() if reach is not None]
-        done.update(zip(again, fork_map(lambda n: warp_bone(n, init, rotation_prior, checks[n][0]), again)))
+        for n, r2 in zip(again, fork_map(lambda n: warp_bone(n, init, rotation_prior, checks[n][0]), again)):
+            done[n] = checked(n, done[n], r2, init)
     for name, bone in template.bones.items():
         if name not in targets or bone.mesh is None:
             continue
@@ -1240,7 +1262,8 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                 # (results holds the plausible warps only; a neighbour later in the template's order is not used)
                 checks[name] = length_check(name, r, results, None)
                 if checks[name][0] is not None:
-                    r = warp_bone(name, start, rotation_prior if a is not None else 0.0, checks[name][0])
+                    r = checked(name, r, warp_bone(name, start, rotation_prior if a is not None else 0.0,
+                                                   checks[name][0]), start)
         # a target that only fits the bone turned over or stretched is not this
         # bone (two bones merged, a neighbour taken for it): carry the bone from
         # its neighbours instead of warping it onto the wrong shape
