@@ -144,15 +144,20 @@ class _Surface:
 
     def seen(self, p: np.ndarray) -> np.ndarray:
         """Which points lie where the target was looked for (outside every ``unseen`` half-space)."""
-        ok = np.ones(len(p), bool)
-        for n, c in self.unseen:
-            ok &= p @ n <= c
-        return ok
+        return ~_past(p, self.unseen)
 
     def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Closest points on the surface and their face ids."""
         cells, pts = self.poly.find_closest_cell(p, return_closest_point=True)
         return np.asarray(pts, dtype=float).reshape(-1, 3), np.asarray(cells, dtype=np.int64).reshape(-1)
+
+
+def _past(p: np.ndarray, halfspaces) -> np.ndarray:
+    """Which points lie in any of the half-spaces ``(normal, offset)``: ``normal . p > offset``."""
+    out = np.zeros(len(p), bool)
+    for n, c in halfspaces:
+        out |= p @ n > c
+    return out
 
 
 def _check_unseen(unseen) -> list[tuple[np.ndarray, float]]:
@@ -872,12 +877,12 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         T_aff, covered_m = cover_extent(T_aff, marrow, target.mesh.vertices, directions=[n for n, _ in target.unseen])
         if covered_m is not None:
             covered = {**(covered or {}), "marrow": covered_m}
-    length_cut = _Surface.__new__(_Surface)       # only its seen(): the length cut's half-spaces alone
-    length_cut.unseen = [] if reach is None else _check_unseen(reach[1])
-    if reach is not None and length_cut.unseen:
+    # the length cut's half-spaces alone (the target's other cuts, a search's end, play no part here)
+    length_cut = [] if reach is None else _check_unseen(reach[1])
+    if length_cut:
         # past a cut nothing of the extraction holds the bone's length but the affine's axial scale, which
         # the extraction's short end sets: the neighbour's affine says how far the bone goes on there
-        T_aff, covered_n = cover_extent(T_aff, src_world, reach[0], directions=[n for n, _ in length_cut.unseen])
+        T_aff, covered_n = cover_extent(T_aff, src_world, reach[0], directions=[n for n, _ in length_cut])
         if covered_n is not None:
             covered = {**(covered or {}), "neighbour": covered_n}
     base = Mesh(_apply(T_aff, src_world), faces, "target")  # the template after the affine ("A-space")
@@ -893,7 +898,7 @@ def _warp_one(name: str, src_world: np.ndarray, faces: np.ndarray, target: _Surf
         # apart (one per cube of that size), are held where it puts them. (Not when the cut affine reached
         # the neighbour's length by itself: on the two radii where that was so, holding moved the wrist's
         # centre 0.4 mm farther off and the styloid 0.5 mm, against the RBF's extrapolation.)
-        past = base.vertices[~length_cut.seen(base.vertices)]
+        past = base.vertices[_past(base.vertices, length_cut)]
         _, first = np.unique(np.floor(past / spacing).astype(np.int64), axis=0, return_index=True)
         held = past[np.sort(first)]
         covered["neighbour"]["held_past_cut"] = int(len(held))
