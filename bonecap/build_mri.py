@@ -553,7 +553,7 @@ PLACED_MAX_SHIFT_MM = 60.0
 #: (:func:`bonecap.skeleton.warp.warp_skeleton`'s ``cover_marrow``). Not the radius: the template's marrow
 #: reaches within 2 mm of its styloid, so the cover never applies, and with the end cut alone the demo
 #: subject's radii had every RBF width fold and stayed 9-10 mm short (their tips within 1 mm without the
-#: cut); its end is cut with its length from its ulna (:data:`LENGTH_FROM`).
+#: cut); its warp is checked against its ulna's length instead, and cut when short (:data:`LENGTH_FROM`).
 MARROWLESS_ENDS = ("ulna",)
 
 #: The long bones whose warp is checked at its distal end against the length a measured neighbour gives

@@ -1073,9 +1073,9 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     length_from : dict of str -> (str, sequence of (normal (3,), offset)), optional
         Bone -> (a neighbour with its own target, half-spaces): the bone's
         extraction may end short of the bone past those half-spaces (an end
-        the slice rules do not resolve), and the neighbour's warp of the
-        template bone (its vertices mapped with the neighbour's map: the
-        template's proportion to the neighbour) says how far it goes on. The
+        the slice rules do not resolve), and the neighbour's affine applied
+        to the template bone (the template's proportion to the neighbour)
+        says how far it goes on. The
         bone is warped as usual; where its warp then ends more than
         :data:`LENGTH_FROM_MARGIN_MM` short of the neighbour's (along its axis,
         toward the half-spaces), it is warped again with that end cut (the
@@ -1170,7 +1170,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
 
     def reach_of(name: str, done_so_far: dict[str, dict[str, Any]],
                  start: np.ndarray | None = None) -> np.ndarray | None:
-        """The bone's template vertices where its ``length_from`` neighbour's warp puts them (or None);
+        """The bone's template vertices where its ``length_from`` neighbour's affine puts them (or None);
         ``start``: the neighbour's, to check its result (results not checked yet)."""
         nb = length_from[name][0] if name in length_from else None
         r = done_so_far.get(nb)
