@@ -54,7 +54,7 @@ FOREARM_TWISTS_DEG = (0.0, 99.5, 172.1)
 #: in a child that ends before the MRI starts, for its memory target (the two
 #: processes together held ~350 MiB; ~5 s longer). ``forearm_beside``: the
 #: forearm stacks likewise, in a second child beside the stations (the tiny
-#: preset: ~0.8 s less wall time on 2 cores); after them in this process otherwise.
+#: preset: ~0.5 s less wall time on 2 cores); after them in this process otherwise.
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {"n_stations": 8, "pixel_mm": 1.8, "pitch_mm": 5.0, "thickness_mm": 5.0, "supersample": 4,
                 "through": 4, "forearm_pixel_mm": 0.7, "forearm_pitch_mm": 2.5, "n_capsules": 8,
