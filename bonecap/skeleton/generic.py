@@ -1788,7 +1788,8 @@ def _hash_obj(h, obj, depth=0):
     if depth > 6:
         return
     if isinstance(obj, np.ndarray):
-        h.update(str(obj.dtype).encode() + str(obj.shape).encode())
+        # dtype.str ('<f8'), not str(dtype), whose name lookup took 0.07 of the keys' 0.11 s (tiny phantom)
+        h.update(obj.dtype.str.encode() + str(obj.shape).encode())
         h.update(np.ascontiguousarray(obj).tobytes())
     elif isinstance(obj, (float, int, str, bool, np.floating, np.integer)) or obj is None:
         h.update(repr(obj).encode())
