@@ -1168,27 +1168,34 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
     if any(not h for _, h in length_from.values()):
         raise ValueError("length_from needs at least one half-space per bone (the end it may fall short at)")
 
+    def template_vertices(name: str) -> np.ndarray:
+        bone = template.bones[name]
+        return _apply(bone.bone_to_world, bone.mesh.vertices)
+
+    def mapped(r: dict[str, Any], p: np.ndarray) -> np.ndarray:
+        """Points (template world) through a bone's warp result: its RBF, or its affine where none passed."""
+        return r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
+
+    def why_not(name: str, start: np.ndarray, r: dict[str, Any]) -> str:
+        """Why the bone's warp ``r`` from ``start`` cannot be the bone (:func:`_implausible`; '' when it can)."""
+        return _implausible(start, r, max_turn_deg, max_affine_residual_mm, template_vertices(name).mean(axis=0),
+                            max_shift_mm)
+
     def reach_of(name: str, done_so_far: dict[str, dict[str, Any]],
                  start: np.ndarray | None = None) -> np.ndarray | None:
         """The bone's template vertices where its ``length_from`` neighbour's affine puts them (or None);
         ``start``: the neighbour's, to check its result (results not checked yet)."""
         nb = length_from[name][0] if name in length_from else None
         r = done_so_far.get(nb)
-        if r is None or (start is not None and _implausible(
-                start, r, max_turn_deg, max_affine_residual_mm,
-                _apply(template.bones[nb].bone_to_world, template.bones[nb].mesh.vertices).mean(axis=0),
-                max_shift_mm)):
+        if r is None or (start is not None and why_not(nb, start, r)):
             return None
         # the neighbour's affine, not its RBF: the template's proportion, without the local corrections of
         # the neighbour's own surface (whose kernels reach a few cm across to this bone)
-        bone = template.bones[name]
-        return _apply(r["T_affine"], _apply(bone.bone_to_world, bone.mesh.vertices))
+        return _apply(r["T_affine"], template_vertices(name))
 
     def short_of(name: str, r: dict[str, Any], reach: np.ndarray) -> float:
         """How far (mm) the bone's warp ``r`` ends short of ``reach`` along its axis, toward its length cut."""
-        bone = template.bones[name]
-        p = _apply(bone.bone_to_world, bone.mesh.vertices)
-        got = r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
+        got = mapped(r, template_vertices(name))
         u = _long_axis(reach)
         if u is None:
             return 0.0
@@ -1212,7 +1219,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
                   reach: tuple[np.ndarray, list] | None = None) -> dict[str, Any]:
         """One bone's warp; with ``reach`` (:func:`length_check`'s), its ``length_from`` end cut and stretched to it."""
         bone = template.bones[name]
-        src_world = _apply(bone.bone_to_world, bone.mesh.vertices)
+        src_world = template_vertices(name)
         inner = None if bone.inner_mesh is None else _apply(bone.bone_to_world, bone.inner_mesh.vertices)
         check = src_world if inner is None else np.concatenate([src_world, inner])
         # every other vertex while fitting (spacing ~3-5 mm, below the narrowest kernel); the report
@@ -1229,9 +1236,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
 
     def checked(name: str, first: dict[str, Any], again: dict[str, Any], start: np.ndarray) -> dict[str, Any]:
         """The warp with the length cut, ``again``, unless it is not plausibly the bone: then ``first``."""
-        bone = template.bones[name]
-        why = _implausible(start, again, max_turn_deg, max_affine_residual_mm,
-                           _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0), max_shift_mm)
+        why = why_not(name, start, again)
         if not why:
             return again
         checks[name][1].update(used=False, why=f"the warp with the cut end was rejected ({why}); the first kept")
@@ -1272,8 +1277,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         # a target that only fits the bone turned over or stretched is not this
         # bone (two bones merged, a neighbour taken for it): carry the bone from
         # its neighbours instead of warping it onto the wrong shape
-        centre = _apply(bone.bone_to_world, bone.mesh.vertices).mean(axis=0)
-        why = _implausible(start, r, max_turn_deg, max_affine_residual_mm, centre, max_shift_mm)
+        why = why_not(name, start, r)
         if why:
             rejected[name] = why
             continue
@@ -1281,8 +1285,7 @@ def warp_skeleton(template: Skeleton, targets: dict[str, Mesh], *, init=None, n_
         rigid_of[name] = r["T_rigid"]
 
     def own_map(name: str, p: np.ndarray) -> np.ndarray:
-        r = results[name]
-        return r["warp"](p) if r["warp"] is not None else _apply(r["T_affine"], p)
+        return mapped(results[name], p)
 
     # joint centres: one position per joint
     groups = joint_groups(template)
